@@ -1,0 +1,3 @@
+from rmavatar.cli import main
+
+raise SystemExit(main())

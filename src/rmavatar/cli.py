@@ -1,0 +1,54 @@
+"""The ``rmavatar`` command line.
+
+Each sub-command lives next to the code it drives, in a module with ``add_arguments(parser)`` and
+``run(args) -> int``. Only the chosen command's module is imported, so ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from rmavatar import __version__
+from rmavatar.utils import UserError
+
+# name -> (module, one-line help). Add a row when a command lands.
+COMMANDS: dict[str, tuple[str, str]] = {}
+
+
+def _build_parser(argv: list[str]) -> tuple[argparse.ArgumentParser, dict]:
+    parser = argparse.ArgumentParser(
+        prog="rmavatar",
+        description="Photorealistic, animatable 3D human avatars from a monocular video "
+        "(RMAvatar: Gaussians embedded in a posed body mesh, rectified by a pose-conditioned MLP).",
+        epilog="Run 'rmavatar COMMAND --help' for a command's options.",
+    )
+    parser.add_argument("--version", action="version", version=f"rmavatar {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    modules = {}
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            mod = importlib.import_module(module)
+            mod.add_arguments(p)
+            modules[name] = mod
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser, modules = _build_parser(argv)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except UserError as exc:
+        print(f"rmavatar {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"rmavatar {args.command}: interrupted", file=sys.stderr)
+        return 130
