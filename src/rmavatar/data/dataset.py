@@ -1,0 +1,231 @@
+"""The dataset object shared by every source, and `load_dataset`, which picks the source reader.
+
+A dataset keeps everything but the pixels in memory (cameras and SMPL-format parameters per frame);
+images and masks are read on first use, resized, and kept in a least-recently-used cache bounded in bytes.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from rmavatar.data.frame import Camera, Frame
+from rmavatar.data.io import read_image, read_mask, resample
+from rmavatar.utils import UserError
+
+KINDS = ("native", "peoplesnapshot", "zju")
+SPLIT_ORDER = ("train", "val", "test", "novel_pose")
+
+
+@dataclass
+class FrameRecord:
+    """What a dataset knows about one frame before its pixels are read.
+
+    index: the frame's number in the source; image: its image file; masks: one or more mask files
+    (several are united: ZJU's mask/ and mask_cihp/); camera at the source resolution;
+    betas [10], global_orient [3], body_pose [69], transl [3] float32.
+    """
+
+    index: int
+    image: Path
+    masks: tuple[Path, ...]
+    camera: Camera
+    betas: np.ndarray
+    global_orient: np.ndarray
+    body_pose: np.ndarray
+    transl: np.ndarray
+
+
+def target_size(width: int, height: int, size) -> tuple[int, int]:
+    """``size``: None (keep), an int (the longer side, aspect kept) or (width, height)."""
+    if size is None:
+        return width, height
+    if isinstance(size, (int, np.integer)):
+        if size <= 0:
+            raise UserError(f"size must be positive, got {size}")
+        scale = size / max(width, height)
+        return max(1, round(width * scale)), max(1, round(height * scale))
+    w, h = (int(v) for v in size)
+    if w <= 0 or h <= 0:
+        raise UserError(f"size must be positive, got {size}")
+    return w, h
+
+
+class Dataset:
+    """Frames per split, loaded lazily, resized on load.
+
+    Attributes: kind ("native", "peoplesnapshot", "zju"), name, gender ("male"/"female"/"neutral"/None),
+    body (a body preset such as "anny:female" or None), fps (None where unknown), root (the folder),
+    splits (split -> list of source frame indices), source_size and image_size ((width, height) before
+    and after resizing).
+    ``frame(split, i)`` takes the position ``i`` in the split (0 <= i < num_frames(split)); the returned
+    Frame's ``index`` is the source frame number.
+    """
+
+    def __init__(self, *, kind: str, name: str, root: Path, records: dict[str, list[FrameRecord]],
+                 source_size: tuple[int, int], gender: str | None = None, body: str | None = None,
+                 fps: float | None = None, size=None, cache_mb: float = 1024.0,
+                 mask_reader: Callable[[Path], np.ndarray] = read_mask):
+        self.kind = kind
+        self.name = name
+        self.root = Path(root)
+        self.gender = gender
+        self.body = body
+        self.fps = fps
+        self._records = {s: records[s] for s in sorted(records, key=_split_key) if records[s]}
+        self.splits = {s: [r.index for r in recs] for s, recs in self._records.items()}
+        self.source_size = (int(source_size[0]), int(source_size[1]))
+        self.image_size = target_size(*self.source_size, size)
+        self._mask_reader = mask_reader
+        self._cache: OrderedDict[str, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache_bytes = 0
+        self._cache_limit = int(cache_mb * 2**20)
+
+    def __repr__(self) -> str:
+        counts = ", ".join(f"{s}={len(v)}" for s, v in self.splits.items())
+        w, h = self.image_size
+        return f"<{type(self).__name__} {self.kind}:{self.name} {w}x{h} {counts}>"
+
+    def num_frames(self, split: str) -> int:
+        return len(self._record_list(split))
+
+    def camera(self, split: str, i: int) -> Camera:
+        """The camera of frame ``i`` of ``split`` at the output image size (no pixels are read)."""
+        return self._record(split, i).camera.resized(*self.image_size)
+
+    def params(self, split: str) -> dict[str, np.ndarray]:
+        """The split's SMPL-format parameters stacked: betas [n,10], global_orient [n,3],
+        body_pose [n,69], transl [n,3], index [n] (source frame numbers)."""
+        recs = self._record_list(split)
+        return {
+            "betas": np.stack([r.betas for r in recs]),
+            "global_orient": np.stack([r.global_orient for r in recs]),
+            "body_pose": np.stack([r.body_pose for r in recs]),
+            "transl": np.stack([r.transl for r in recs]),
+            "index": np.array([r.index for r in recs], dtype=np.int64),
+        }
+
+    def frame(self, split: str, i: int) -> Frame:
+        rec = self._record(split, i)
+        image, mask = self._pixels(rec)
+        return Frame(image=image, mask=mask, camera=rec.camera.resized(*self.image_size),
+                     betas=rec.betas, global_orient=rec.global_orient, body_pose=rec.body_pose,
+                     transl=rec.transl, index=rec.index, split=split)
+
+    def frames(self, split: str) -> Iterator[Frame]:
+        for i in range(self.num_frames(split)):
+            yield self.frame(split, i)
+
+    # --- internals -------------------------------------------------------------------------------
+
+    def _record_list(self, split: str) -> list[FrameRecord]:
+        if split not in self._records:
+            have = ", ".join(self._records) or "none"
+            raise UserError(f"dataset {self.root} has no split '{split}' (it has: {have})")
+        return self._records[split]
+
+    def _record(self, split: str, i: int) -> FrameRecord:
+        recs = self._record_list(split)
+        if not -len(recs) <= i < len(recs):
+            raise IndexError(f"frame {i} out of range for split '{split}' with {len(recs)} frames")
+        return recs[i]
+
+    def _read_pixels(self, rec: FrameRecord) -> tuple[np.ndarray, np.ndarray]:
+        """Source-resolution image [H,W,3] and mask [H,W]; readers override this to undistort."""
+        image = read_image(rec.image)
+        masks = [self._mask_reader(p) for p in rec.masks]
+        w, h = self.source_size
+        if image.shape[:2] != (h, w):
+            raise UserError(f"image {rec.image} is {image.shape[1]}x{image.shape[0]}, "
+                            f"the dataset's cameras are {w}x{h}")
+        for p, m in zip(rec.masks, masks):
+            if m.shape != (h, w):
+                raise UserError(f"mask {p} is {m.shape[1]}x{m.shape[0]}, its image is {w}x{h}")
+        mask = masks[0] if len(masks) == 1 else np.maximum.reduce(masks)
+        return image, mask
+
+    def _pixels(self, rec: FrameRecord) -> tuple[np.ndarray, np.ndarray]:
+        key = str(rec.image)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        image, mask = self._read_pixels(rec)
+        image = resample(image, *self.image_size)
+        mask = resample(mask, *self.image_size)
+        image.setflags(write=False)
+        mask.setflags(write=False)
+        self._cache[key] = (image, mask)
+        self._cache_bytes += image.nbytes + mask.nbytes
+        while self._cache_bytes > self._cache_limit and len(self._cache) > 1:
+            _, (im, mk) = self._cache.popitem(last=False)
+            self._cache_bytes -= im.nbytes + mk.nbytes
+        return image, mask
+
+
+def _split_key(name: str) -> tuple[int, str]:
+    return (SPLIT_ORDER.index(name) if name in SPLIT_ORDER else len(SPLIT_ORDER), name)
+
+
+def parse_spec(spec: str) -> tuple[str | None, Path, dict[str, str]]:
+    """``[kind:]PATH[?key=value&...]`` -> (kind or None, path, options)."""
+    spec = str(spec)
+    kind = None
+    head, sep, rest = spec.partition(":")
+    if sep and head in KINDS:
+        kind, spec = head, rest
+    options: dict[str, str] = {}
+    if "?" in spec:
+        path_part, _, query = spec.rpartition("?")
+        pairs = [q.partition("=") for q in query.split("&")]
+        if all(p[1] and p[0] for p in pairs):
+            options = {k: v for k, _, v in pairs}
+            spec = path_part
+    return kind, Path(spec).expanduser(), options
+
+
+def detect_kind(path: Path) -> str:
+    """The source kind from the folder's layout."""
+    if (path / "meta.yaml").is_file():
+        return "native"
+    if (path / "annots.npy").is_file():
+        return "zju"
+    if (path / "cameras.npz").is_file() and ((path / "poses").is_dir() or (path / "poses.npz").is_file()):
+        return "peoplesnapshot"
+    raise UserError(
+        f"{path} is not a dataset rmavatar recognises: expected meta.yaml (native format), annots.npy "
+        f"(ZJU-MoCap) or cameras.npz with poses/ (PeopleSnapshot, InstantAvatar layout); "
+        f"or name the kind as KIND:PATH with KIND one of {', '.join(KINDS)}")
+
+
+def load_dataset(spec: str | Path, size=None, *, cache_mb: float = 1024.0, **options) -> Dataset:
+    """Open a dataset.
+
+    spec: ``PATH`` (the kind is detected from the layout) or ``KIND:PATH`` with KIND one of native,
+    peoplesnapshot, zju; options may follow as ``?key=value&...`` (ZJU: ``camera=N`` 0-based,
+    ``mask=union|mask|cihp``, ``body=SPEC``). size: None (source resolution), an int (the longer side)
+    or (width, height). cache_mb bounds the decoded-image cache. Keyword options override those in spec.
+    """
+    kind, path, spec_options = parse_spec(str(spec))
+    spec_options.update({k: v for k, v in options.items() if v is not None})
+    if not path.exists():
+        raise UserError(f"dataset folder {path} does not exist")
+    if not path.is_dir():
+        raise UserError(f"dataset {path} is not a folder")
+    kind = kind or detect_kind(path)
+    if kind == "native":
+        from rmavatar.data.native import open_native as opener
+    elif kind == "peoplesnapshot":
+        from rmavatar.data.peoplesnapshot import open_peoplesnapshot as opener
+    else:
+        from rmavatar.data.zju import open_zju as opener
+    return opener(path, size=size, cache_mb=cache_mb, **spec_options)
+
+
+def warn(msg: str) -> None:
+    warnings.warn(msg, UserWarning, stacklevel=3)

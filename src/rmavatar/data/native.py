@@ -1,0 +1,331 @@
+"""rmavatar's native dataset format: what `rmavatar synth` writes and what a user converts a video to.
+
+A folder::
+
+    meta.yaml     format: rmavatar-native, version: 1, name, gender, body, fps, width, height,
+                  num_frames, splits: {train: [frame indices], val: [...], test: [...], novel_pose: [...]},
+                  extra: {free-form provenance}
+    cameras.npz   K [N,3,3] or [3,3] (one camera for all frames), viewmat [N,4,4] or [4,4]
+                  (world-to-camera, OpenCV axes, metres); float32
+    smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32
+    images/00000.png ...   8-bit RGB, frame i is f"{i:05d}.png"
+    masks/00000.png  ...   8-bit grey, 0-255 soft foreground coverage
+
+Frames are numbered 0..N-1; a frame may belong to several splits. The full description, with the
+conventions (pixel centres, SMPL world frame), is in docs/data.md.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from rmavatar.data.dataset import Dataset, FrameRecord, warn
+from rmavatar.data.frame import Camera
+from rmavatar.data.io import to_uint8, write_png
+from rmavatar.utils import UserError, atomic_dir
+
+FORMAT = "rmavatar-native"
+VERSION = 1
+GENDERS = ("male", "female", "neutral")
+PARAM_KEYS = ("betas", "global_orient", "body_pose", "transl")
+
+
+@dataclass
+class NativeMeta:
+    """meta.yaml's content besides what is derived from the arrays (size, frame count).
+
+    name: the subject's name; splits: split name -> frame indices (0-based, into the N frames);
+    fps: the video's frame rate; gender: "male", "female", "neutral" or None (picks the SMPL file);
+    body: a body preset the data was made with (e.g. "anny:female"), or None;
+    extra: free-form provenance (tracker, synth seed, ...) kept verbatim.
+    """
+
+    name: str
+    splits: dict[str, list[int]]
+    fps: float = 30.0
+    gender: str | None = None
+    body: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _as_meta(meta: NativeMeta | Mapping) -> NativeMeta:
+    if isinstance(meta, NativeMeta):
+        return meta
+    known = {"name", "splits", "fps", "gender", "body", "extra"}
+    unknown = set(meta) - known
+    if unknown:
+        raise UserError(f"unknown meta keys {sorted(unknown)} (allowed: {sorted(known)})")
+    return NativeMeta(**meta)
+
+
+def _stack_cameras(cameras, n: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int] | None]:
+    """Camera | sequence of Camera | {"K", "viewmat"} -> K, viewmat arrays (single or per frame)."""
+    size = None
+    if isinstance(cameras, Camera):
+        K, V, size = cameras.K, cameras.viewmat, (cameras.width, cameras.height)
+    elif isinstance(cameras, Mapping):
+        missing = [k for k in ("K", "viewmat") if k not in cameras]
+        if missing:
+            raise UserError(f"cameras is missing {missing}")
+        K, V = np.asarray(cameras["K"]), np.asarray(cameras["viewmat"])
+    else:
+        cams = list(cameras)
+        if not cams or not all(isinstance(c, Camera) for c in cams):
+            raise UserError("cameras must be a Camera, a list of Camera, or a dict with K and viewmat")
+        sizes = {(c.width, c.height) for c in cams}
+        if len(sizes) != 1:
+            raise UserError(f"all cameras must share one image size, got {sorted(sizes)}")
+        size = sizes.pop()
+        K, V = np.stack([c.K for c in cams]), np.stack([c.viewmat for c in cams])
+    K, V = np.asarray(K, np.float32), np.asarray(V, np.float32)
+    if K.shape not in ((3, 3), (n, 3, 3)):
+        raise UserError(f"camera K must be [3,3] or [{n},3,3] for {n} frames, got {list(K.shape)}")
+    if V.shape not in ((4, 4), (n, 4, 4)):
+        raise UserError(f"camera viewmat must be [4,4] or [{n},4,4] for {n} frames, got {list(V.shape)}")
+    if not (np.isfinite(K).all() and np.isfinite(V).all()):
+        raise UserError("cameras hold NaN or Inf")
+    return K, V, size
+
+
+def _check_params(params, where: str) -> dict[str, np.ndarray]:
+    """SMPL-format parameters (mapping or object with attributes) -> validated float32 arrays."""
+    out = {}
+    for key in PARAM_KEYS:
+        value = params.get(key) if isinstance(params, Mapping) else getattr(params, key, None)
+        if value is None:
+            raise UserError(f"{where}: SMPL parameters are missing '{key}'")
+        out[key] = np.asarray(value, dtype=np.float32)
+    n = out["global_orient"].shape[0] if out["global_orient"].ndim == 2 else -1
+    want = {"global_orient": (n, 3), "body_pose": (n, 69), "transl": (n, 3)}
+    for key, shape in want.items():
+        if n < 0 or out[key].shape != shape:
+            raise UserError(f"{where}: '{key}' must be [N,{shape[1]}] with N frames as global_orient, "
+                            f"got {list(out[key].shape)}")
+    betas = out["betas"]
+    if betas.ndim == 2 and betas.shape[0] == 1:
+        betas = betas[0]
+    if betas.shape not in ((10,), (n, 10)):
+        raise UserError(f"{where}: 'betas' must be [10] or [{n},10], got {list(out['betas'].shape)}")
+    out["betas"] = betas
+    for key, value in out.items():
+        if not np.isfinite(value).all():
+            raise UserError(f"{where}: '{key}' holds NaN or Inf")
+    return out
+
+
+def _check_splits(splits: Mapping, n: int, where: str) -> dict[str, list[int]]:
+    if not isinstance(splits, Mapping) or not splits:
+        raise UserError(f"{where}: 'splits' must map split names to lists of frame indices")
+    out = {}
+    for name, idx in splits.items():
+        if not isinstance(idx, (list, tuple, np.ndarray)):
+            raise UserError(f"{where}: split '{name}' must be a list of frame indices")
+        idx = [int(i) for i in idx]
+        bad = [i for i in idx if not 0 <= i < n]
+        if bad:
+            raise UserError(f"{where}: split '{name}' refers to frames {bad[:5]} outside 0..{n - 1}")
+        out[str(name)] = idx
+    return out
+
+
+def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras, params,
+                 images: Iterable[np.ndarray], masks: Iterable[np.ndarray], *,
+                 progress: bool = True) -> Path:
+    """Write a dataset in the native format to ``out_dir``, atomically (a temporary folder renamed at
+    the end; an existing ``out_dir`` is replaced only on success).
+
+    meta: NativeMeta or a dict with its fields. cameras: one Camera (all frames), a list of N Cameras,
+    or {"K": [3,3]|[N,3,3], "viewmat": [4,4]|[N,4,4]}. params: mapping or object with betas [10]|[N,10],
+    global_orient [N,3], body_pose [N,69], transl [N,3] (N = the frame count). images: N arrays
+    [H,W,3] (uint8, or float in [0,1]); masks: N arrays [H,W] (float in [0,1], bool, or uint8 0-255).
+    Both may be iterators: frames are written as they come, so a long video streams.
+    Returns the path written.
+    """
+    out_dir = Path(out_dir)
+    meta = _as_meta(meta)
+    p = _check_params(params, "write_native")
+    n = p["global_orient"].shape[0]
+    if n == 0:
+        raise UserError("write_native: no frames")
+    K, V, cam_size = _stack_cameras(cameras, n)
+    splits = _check_splits(meta.splits, n, "write_native")
+    if meta.gender is not None and meta.gender not in GENDERS:
+        raise UserError(f"write_native: gender must be one of {GENDERS} or None, got {meta.gender!r}")
+
+    from tqdm import tqdm
+
+    with atomic_dir(out_dir) as tmp:
+        (tmp / "images").mkdir()
+        (tmp / "masks").mkdir()
+        size = None
+        image_iter, mask_iter = iter(images), iter(masks)
+        bar = tqdm(total=n, desc=f"writing {out_dir.name}", unit="frame", disable=not progress)
+        for i in range(n):
+            try:
+                image = next(image_iter)
+            except StopIteration:
+                raise UserError(f"write_native: {i} images for {n} frames of SMPL parameters") from None
+            try:
+                mask = next(mask_iter)
+            except StopIteration:
+                raise UserError(f"write_native: {i} masks for {n} frames of SMPL parameters") from None
+            image = to_uint8(image, f"image {i}")
+            mask = to_uint8(mask, f"mask {i}")
+            if image.ndim != 3 or image.shape[2] != 3:
+                raise UserError(f"write_native: image {i} must be [H,W,3], got {list(image.shape)}")
+            if size is None:
+                size = (image.shape[1], image.shape[0])
+                if cam_size is not None and cam_size != size:
+                    raise UserError(f"write_native: cameras are {cam_size[0]}x{cam_size[1]}, "
+                                    f"images {size[0]}x{size[1]}")
+            if (image.shape[1], image.shape[0]) != size:
+                raise UserError(f"write_native: image {i} is {image.shape[1]}x{image.shape[0]}, "
+                                f"image 0 is {size[0]}x{size[1]}")
+            if mask.shape != image.shape[:2]:
+                raise UserError(f"write_native: mask {i} is {list(mask.shape)}, its image "
+                                f"{list(image.shape[:2])}")
+            write_png(tmp / "images" / f"{i:05d}.png", image)
+            write_png(tmp / "masks" / f"{i:05d}.png", mask)
+            bar.update(1)
+        bar.close()
+        for what, it in (("images", image_iter), ("masks", mask_iter)):
+            if next(it, None) is not None:
+                raise UserError(f"write_native: more {what} than the {n} frames of SMPL parameters")
+        np.savez(tmp / "cameras.npz", K=K, viewmat=V)
+        np.savez(tmp / "smpl.npz", **p)
+        doc = {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": str(meta.name),
+            "gender": meta.gender,
+            "body": meta.body,
+            "fps": float(meta.fps) if meta.fps is not None else None,
+            "width": int(size[0]),
+            "height": int(size[1]),
+            "num_frames": int(n),
+            "splits": splits,
+            "extra": _plain(meta.extra),
+        }
+        with open(tmp / "meta.yaml", "w") as f:
+            yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None, width=100)
+    return out_dir
+
+
+def _plain(value):
+    """numpy scalars/arrays inside ``extra`` -> plain YAML-safe Python values."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def _load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise UserError(f"{path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise UserError(f"cannot read {path}: {exc}") from None
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise UserError(f"{path} is missing {missing} (it has {sorted(data)})")
+    return data
+
+
+def read_meta(root: Path) -> dict:
+    path = root / "meta.yaml"
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except FileNotFoundError:
+        raise UserError(f"{path} does not exist") from None
+    except yaml.YAMLError as exc:
+        raise UserError(f"cannot parse {path}: {exc}") from None
+    if not isinstance(doc, dict):
+        raise UserError(f"{path} must hold a mapping")
+    if doc.get("format") != FORMAT:
+        raise UserError(f"{path}: 'format' must be {FORMAT!r}, got {doc.get('format')!r}")
+    if doc.get("version") != VERSION:
+        raise UserError(f"{path}: format version {doc.get('version')!r} is not supported (this "
+                        f"rmavatar reads version {VERSION})")
+    for key in ("name", "width", "height", "num_frames", "splits"):
+        if key not in doc:
+            raise UserError(f"{path} is missing '{key}'")
+    if doc.get("gender") is not None and doc["gender"] not in GENDERS:
+        raise UserError(f"{path}: gender must be one of {GENDERS} or null, got {doc['gender']!r}")
+    return doc
+
+
+def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> Dataset:
+    """Read a native-format folder (layout in the module docstring). Frames without an image or a
+    mask, arrays whose frame count differs from meta.yaml's, and missing keys are errors naming the file."""
+    if options:
+        raise UserError(f"the native format takes no options, got {sorted(options)}")
+    root = Path(root)
+    doc = read_meta(root)
+    n = int(doc["num_frames"])
+    width, height = int(doc["width"]), int(doc["height"])
+    splits = _check_splits(doc["splits"], n, str(root / "meta.yaml"))
+    cam = _load_npz(root / "cameras.npz", ("K", "viewmat"))
+    try:
+        K, V, _ = _stack_cameras({"K": cam["K"], "viewmat": cam["viewmat"]}, n)
+    except UserError as exc:
+        raise UserError(f"{root / 'cameras.npz'}: {exc}") from None
+    p = _check_params(_load_npz(root / "smpl.npz", PARAM_KEYS), str(root / "smpl.npz"))
+    if p["global_orient"].shape[0] != n:
+        raise UserError(f"{root / 'smpl.npz'} has {p['global_orient'].shape[0]} frames, "
+                        f"meta.yaml says {n}")
+    images = _listing(root / "images")
+    masks = _listing(root / "masks")
+    used = sorted({i for idx in splits.values() for i in idx})
+    for i in used:
+        name = f"{i:05d}.png"
+        if name not in images:
+            raise UserError(f"frame {i} has no image: {root / 'images' / name} does not exist")
+        if name not in masks:
+            raise UserError(f"frame {i} has no mask: {root / 'masks' / name} does not exist")
+    extra_images = len(images) - n
+    if extra_images > 0:
+        warn(f"{root / 'images'} holds {len(images)} files for {n} frames; the extra ones are ignored")
+    betas = p["betas"] if p["betas"].ndim == 2 else np.broadcast_to(p["betas"], (n, 10))
+    Ks = K if K.ndim == 3 else np.broadcast_to(K, (n, 3, 3))
+    Vs = V if V.ndim == 3 else np.broadcast_to(V, (n, 4, 4))
+    cameras: dict[int, Camera] = {}
+    records = {}
+    for split, idx in splits.items():
+        recs = []
+        for i in idx:
+            if i not in cameras:
+                cameras[i] = Camera(Ks[i], Vs[i], width, height)
+            recs.append(FrameRecord(
+                index=i, image=root / "images" / f"{i:05d}.png", masks=(root / "masks" / f"{i:05d}.png",),
+                camera=cameras[i], betas=np.array(betas[i]), global_orient=p["global_orient"][i],
+                body_pose=p["body_pose"][i], transl=p["transl"][i]))
+        records[split] = recs
+    fps = doc.get("fps")
+    return Dataset(kind="native", name=str(doc["name"]), root=root, records=records,
+                   source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
+                   fps=float(fps) if fps is not None else None, size=size, cache_mb=cache_mb)
+
+
+def _listing(folder: Path) -> set[str]:
+    if not folder.is_dir():
+        raise UserError(f"folder {folder} does not exist")
+    return set(os.listdir(folder))
+
+
+__all__ = ["NativeMeta", "write_native", "open_native", "read_meta", "FORMAT", "VERSION"]
