@@ -14,7 +14,9 @@ from rmavatar import __version__
 from rmavatar.utils import UserError
 
 # name -> (module, one-line help). Add a row when a command lands.
-COMMANDS: dict[str, tuple[str, str]] = {}
+COMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("rmavatar.train.cli", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
+}
 
 
 def _build_parser(argv: list[str]) -> tuple[argparse.ArgumentParser, dict]:

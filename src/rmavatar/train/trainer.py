@@ -1,0 +1,433 @@
+"""The training loop: one frame per step, Adam with the paper's learning rates, density control on the
+paper's (run-length-scaled) schedule, atomic checkpoints, exact resume, Ctrl-C and NaN safety.
+
+The posed body of every training frame never changes during training (no pose refinement), so all
+of them are computed once, up front, in batches; a step then only runs avatar -> rasterizer -> losses.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rmavatar.train.checkpoint import (
+    body_signature, capture_rng, check_body, checkpoint_path, prepare_run_dir, read_checkpoint,
+    restore_rng, save_checkpoint,
+)
+from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
+from rmavatar.utils import UserError, atomic_path
+
+
+# ----------------------------------------------------------------------------------------------- small parts
+def normalize_data_spec(spec: str) -> str:
+    """The dataset spec with its path made absolute, so a run remembers its data from any folder."""
+    from rmavatar.data.dataset import parse_spec
+
+    kind, path, options = parse_spec(str(spec))
+    query = "&".join(f"{k}={v}" for k, v in options.items())
+    return f"{kind + ':' if kind else ''}{path.resolve()}{'?' + query if query else ''}"
+
+
+def position_lr(iteration: int, total: int, lr_start: float, lr_end: float) -> float:
+    """3DGS's log-linear decay: lr_start at iteration 0, lr_end at iteration ``total``."""
+    t = min(max(iteration / max(total, 1), 0.0), 1.0)
+    return math.exp(math.log(lr_start) * (1.0 - t) + math.log(lr_end) * t)
+
+
+class FrameSampler:
+    """Seeded shuffling, one frame per step: epoch e visits permutation(seed, e) in order.
+
+    Its whole state is (epoch, position), so a checkpoint can store and restore it exactly.
+    """
+
+    def __init__(self, num_frames: int, seed: int):
+        if num_frames < 1:
+            raise UserError("the training split has no frames")
+        self.num_frames = num_frames
+        self.seed = seed
+        self.epoch = 0
+        self.position = 0
+        self._perm = self._permutation(0)
+
+    def _permutation(self, epoch: int) -> np.ndarray:
+        return np.random.default_rng([self.seed, epoch]).permutation(self.num_frames)
+
+    def next(self) -> int:
+        if self.position >= self.num_frames:
+            self.epoch += 1
+            self.position = 0
+            self._perm = self._permutation(self.epoch)
+        i = int(self._perm[self.position])
+        self.position += 1
+        return i
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "position": self.position, "num_frames": self.num_frames, "seed": self.seed}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["num_frames"] != self.num_frames:
+            raise UserError(f"the checkpoint was trained on {state['num_frames']} frames, "
+                            f"the dataset now has {self.num_frames}")
+        self.seed = state["seed"]
+        self.epoch = state["epoch"]
+        self.position = state["position"]
+        self._perm = self._permutation(self.epoch)
+
+
+def background_color(kind: str, generator: torch.Generator) -> torch.Tensor:
+    """Background [3] for one step: white, black, or a random colour per step (drawn from ``generator``)."""
+    if kind == "white":
+        return torch.ones(3)
+    if kind == "black":
+        return torch.zeros(3)
+    return torch.rand(3, generator=generator)
+
+
+def composite_target(image: torch.Tensor, mask: torch.Tensor, bg: torch.Tensor) -> torch.Tensor:
+    """target = image * mask + bg * (1 - mask); image [H,W,3], mask [H,W], bg [3] -> [H,W,3]."""
+    m = mask.unsqueeze(-1)
+    return image * m + bg * (1.0 - m)
+
+
+def psnr_value(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(torch.mean((a.detach() - b.detach()) ** 2))
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def resolve_body(cfg: TrainConfig, dataset) -> tuple[str, str | None]:
+    """(body spec, gender): the config's choice, else the dataset's preset, else anny with its gender."""
+    spec = cfg.model.body or getattr(dataset, "body", None) or "anny"
+    gender = cfg.model.gender or getattr(dataset, "gender", None)
+    return spec, gender
+
+
+@torch.no_grad()
+def posed_vertices(body, params: dict, chunk: int = 32) -> torch.Tensor:
+    """Posed vertices [n,V,3] of all frames of a split, batched (params from Dataset.params(split))."""
+    n = len(params["body_pose"])
+    out = []
+    for s in range(0, n, chunk):
+        sl = slice(s, s + chunk)
+        res = body(
+            betas=torch.as_tensor(params["betas"][sl], dtype=torch.float32),
+            global_orient=torch.as_tensor(params["global_orient"][sl], dtype=torch.float32),
+            body_pose=torch.as_tensor(params["body_pose"][sl], dtype=torch.float32),
+            transl=torch.as_tensor(params["transl"][sl], dtype=torch.float32),
+        )
+        out.append(res.vertices.detach().float())
+    return torch.cat(out, 0)
+
+
+def build_avatar(body, cfg: TrainConfig, state: dict | None = None):
+    """The Avatar for ``body`` with the config's model options; ``state`` (from a checkpoint) restores it,
+    Gaussian count and parent faces included."""
+    from rmavatar.avatar import Avatar
+
+    m = cfg.model
+    if state is not None:
+        return Avatar.from_state(body, state)
+    return Avatar(body, sh_degree=m.sh_degree, rectifier=m.rectifier, num_gaussians=m.gaussians_per_area or None)
+
+
+# ----------------------------------------------------------------------------------------------- training
+@dataclass
+class TrainResult:
+    iteration: int  # the last completed iteration
+    interrupted: bool  # stopped by Ctrl-C (a checkpoint was written)
+    run_dir: Path
+    history: list[dict]  # one entry per progress report: iteration, loss, psnr, gaussians
+
+
+class _Interrupt:
+    """SIGINT sets a flag the loop checks after each step; a second Ctrl-C raises as usual."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def __enter__(self):
+        try:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        except ValueError:  # not the main thread: leave signals alone
+            self._previous = None
+        return self
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+        return False
+
+
+def train(
+    cfg: TrainConfig | None,
+    run_dir: str | Path,
+    *,
+    resume: bool = False,
+    data: str | None = None,
+    overrides: list | None = None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train an avatar into ``run_dir``.
+
+    Fresh run: ``cfg`` is the full config. Resume: ``cfg`` is None, the run's checkpoint supplies the
+    config; ``data`` (if given) must name the same dataset; ``overrides`` [(value, section, key)] may
+    change only the run length and logging, anything else that differs is an error.
+    """
+    run_dir = Path(run_dir)
+    if resume:
+        ckpt = _resume_payload(run_dir, data)
+        cfg = from_dict(TrainConfig, ckpt["config"], where=f"{checkpoint_path(run_dir)}:config")
+        _apply_resume_overrides(cfg, overrides or [])
+        cfg.validate()
+    else:
+        ckpt = None
+        if cfg is None:
+            raise ValueError("train() needs a config for a fresh run")
+        cfg = from_dict(TrainConfig, to_dict(cfg)).validate()  # a private copy
+        if not cfg.data.path:
+            raise UserError("no dataset given (data.path is empty)")
+        cfg.data.path = normalize_data_spec(cfg.data.path)
+    prepare_run_dir(run_dir, cfg.data.path, resume)
+    save_config(cfg, run_dir / "config.yaml")
+    return _Trainer(cfg, run_dir, ckpt, progress).run()
+
+
+def _resume_payload(run_dir: Path, data: str | None) -> dict:
+    path = checkpoint_path(run_dir)
+    if not path.is_file():
+        raise UserError(f"--resume: {run_dir} has no checkpoint ({path} missing)")
+    payload = read_checkpoint(path)
+    if data is not None and normalize_data_spec(data) != payload["data_spec"]:
+        raise UserError(f"--resume: {run_dir} is a run of {payload['data_spec']!r}, not of {normalize_data_spec(data)!r}")
+    return payload
+
+
+_RESUME_CHANGEABLE = {("optim", "iters"), ("log", "checkpoint_every"), (None, "threads")}
+
+
+def _apply_resume_overrides(cfg: TrainConfig, overrides: list) -> None:
+    for value, section, key in overrides:
+        target = getattr(cfg, section) if section else cfg
+        if (section, key) in _RESUME_CHANGEABLE:
+            setattr(target, key, value)
+        elif getattr(target, key) != value:
+            name = f"{section}.{key}" if section else key
+            raise UserError(f"--resume keeps the run's config: {name} is {getattr(target, key)!r} there, "
+                            f"cannot change it to {value!r} (start a new run instead)")
+
+
+class _Trainer:
+    def __init__(self, cfg: TrainConfig, run_dir: Path, ckpt: dict | None, progress: bool):
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.ckpt = ckpt
+        self.progress = progress
+
+    # --- setup --------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        from rmavatar.body import load_body_model
+        from rmavatar.data import load_dataset
+
+        cfg = self.cfg
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        self.dataset = load_dataset(cfg.data.path, size=cfg.data.size)
+        split = cfg.data.split
+        n = self.dataset.num_frames(split)
+        params = self.dataset.params(split)
+        spec, gender = resolve_body(cfg, self.dataset)
+        if self.ckpt is not None:
+            saved = self.ckpt["body"]
+            spec, gender = saved["spec"], saved.get("gender")
+        self.body = load_body_model(spec, gender=gender)
+        if self.ckpt is not None:
+            check_body(self.ckpt["body"], self.body, str(checkpoint_path(self.run_dir)))
+        self.body_info = {**body_signature(self.body), "gender": gender}
+        self.vertices = posed_vertices(self.body, params)  # [n,V,3], fixed for the whole run
+        self.body_pose = torch.as_tensor(params["body_pose"], dtype=torch.float32)  # [n,69]
+        cams = [self.dataset.camera(split, i) for i in range(n)]
+        self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32)
+        self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32)
+        self.width, self.height = cams[0].width, cams[0].height
+
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed % 2**32)
+        random.seed(cfg.seed)
+        self.bg_generator = torch.Generator().manual_seed(cfg.seed + 1)
+        self.sampler = FrameSampler(n, cfg.seed)
+
+        state = self.ckpt["avatar"] if self.ckpt is not None else None
+        self.avatar = build_avatar(self.body, cfg, state=state)
+        self.avatar.train()
+        self.optimizer = make_optimizer(self.avatar, cfg)
+        self.density = make_density(self.avatar, cfg)
+        self.iteration = 0
+        if self.ckpt is not None:
+            self.optimizer.load_state_dict(self.ckpt["optimizer"])
+            self.density.load_state_dict(self.ckpt["density"])
+            self.sampler.load_state_dict(self.ckpt["sampler"])
+            restore_rng(self.ckpt["rng"], self.bg_generator)
+            self.iteration = int(self.ckpt["iteration"])
+        self.ckpt = None  # free the loaded tensors
+
+    def _frame_target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
+        frame = self.dataset.frame(self.cfg.data.split, i)
+        image = torch.from_numpy(np.array(frame.image, dtype=np.float32))
+        mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32))
+        return composite_target(image, mask, bg)
+
+    # --- checkpoints ------------------------------------------------------------------------------
+    def save(self) -> None:
+        save_checkpoint(checkpoint_path(self.run_dir), {
+            "iteration": self.iteration,
+            "config": to_dict(self.cfg),
+            "data_spec": self.cfg.data.path,
+            "body": self.body_info,
+            "avatar": self.avatar.checkpoint_state(),
+            "optimizer": self.optimizer.state_dict(),
+            "density": self.density.state_dict(),
+            "sampler": self.sampler.state_dict(),
+            "rng": capture_rng(self.bg_generator),
+            "saved_at": time.time(),
+        })
+
+    # --- one step ---------------------------------------------------------------------------------
+    def step(self) -> dict | None:
+        """One iteration; returns its scalars, or None when it was skipped (non-finite loss/gradient)."""
+        from rmavatar.render import rasterize
+        from rmavatar.train.losses import total_loss
+
+        cfg = self.cfg
+        it = self.iteration + 1
+        lr = position_lr(it - 1, cfg.optim.iters, cfg.optim.lr_position, cfg.optim.lr_position_final)
+        for group in self.optimizer.param_groups:
+            if group.get("name") == "position":
+                group["lr"] = lr
+        self.avatar.set_progress(it, cfg.optim.iters)
+        i = self.sampler.next()
+        bg = background_color(cfg.background, self.bg_generator)
+        target = self._frame_target(i, bg)
+        gs = self.avatar(self.vertices[i], self.body_pose[i])
+        image, alpha, info = rasterize(
+            gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, self.viewmats[i], self.Ks[i],
+            self.width, self.height, background=bg, sh_degree=gs.sh_degree,
+        )
+        loss, parts = total_loss(image, target, gs, cfg.loss)
+        if not torch.isfinite(loss):
+            self.optimizer.zero_grad(set_to_none=True)
+            return None
+        loss.backward()
+        if not _grads_finite(self.optimizer):
+            self.optimizer.zero_grad(set_to_none=True)
+            return None
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.density.after_step(it, info)
+        return {"loss": float(loss), "psnr": psnr_value(image, target), "frame": i,
+                **{k: float(v) for k, v in parts.items()}, "image": image.detach(), "target": target}
+
+    # --- loop ---------------------------------------------------------------------------------
+    def run(self) -> TrainResult:
+        self._setup()
+        cfg = self.cfg
+        total = cfg.optim.iters
+        writer = _tensorboard(self.run_dir) if cfg.log.tensorboard else None
+        history: list[dict] = []
+        bad = 0
+        interrupted = False
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=self.iteration, disable=not self.progress, unit="it",
+                   dynamic_ncols=True, desc="train")
+        try:
+            with _Interrupt() as stop:
+                while self.iteration < total:
+                    out = self.step()
+                    if out is None:
+                        bad += 1
+                        # The model was not touched; the iteration still counts so the schedule advances.
+                        self.iteration += 1
+                        bar.write(f"iteration {self.iteration}: non-finite loss or gradient, step skipped "
+                                  f"({bad} in a row)")
+                        if writer:
+                            writer.add_scalar("train/skipped_steps", bad, self.iteration)
+                        if bad >= cfg.log.max_bad_steps:
+                            self.save()
+                            raise UserError(
+                                f"training stopped at iteration {self.iteration}: {bad} consecutive steps had a "
+                                f"non-finite loss or gradient; the last good model is saved in "
+                                f"{checkpoint_path(self.run_dir)} (try a lower learning rate or check the data)")
+                        bar.update(1)
+                        continue
+                    bad = 0
+                    self.iteration += 1
+                    self._report(out, writer, history, bar)
+                    if self.iteration % cfg.log.checkpoint_every == 0 and self.iteration < total:
+                        self.save()
+                    if stop.requested:
+                        interrupted = True
+                        break
+                self.save()
+        finally:
+            bar.close()
+            if writer:
+                writer.close()
+        if interrupted:
+            print(f"interrupted at iteration {self.iteration}; checkpoint saved to {checkpoint_path(self.run_dir)} "
+                  f"(continue with --resume)")
+        return TrainResult(self.iteration, interrupted, self.run_dir, history)
+
+    def _report(self, out: dict, writer, history: list, bar) -> None:
+        cfg = self.cfg
+        it = self.iteration
+        n = self.avatar.num_gaussians
+        bar.update(1)
+        if it % cfg.log.progress_every == 0 or it == cfg.optim.iters:
+            history.append({"iteration": it, "loss": out["loss"], "psnr": out["psnr"], "gaussians": n})
+            bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", N=n, refresh=False)
+        if writer and (it % cfg.log.tensorboard_every == 0):
+            for k, v in out.items():
+                if isinstance(v, float):
+                    writer.add_scalar(f"train/{k}", v, it)
+            writer.add_scalar("train/gaussians", n, it)
+        if it % cfg.log.preview_every == 0 or it == cfg.optim.iters:
+            self._preview(out["image"], out["target"], it, writer)
+
+    def _preview(self, image: torch.Tensor, target: torch.Tensor, it: int, writer) -> None:
+        from PIL import Image
+
+        pair = torch.cat((image, target), dim=1).clamp(0, 1)
+        arr = (pair.numpy() * 255.0 + 0.5).astype(np.uint8)
+        folder = self.run_dir / "previews"
+        folder.mkdir(exist_ok=True)
+        with atomic_path(folder / f"iter_{it:06d}.png") as tmp:
+            Image.fromarray(arr).save(tmp, format="PNG")
+        if writer:
+            writer.add_image("preview/render_target", arr, it, dataformats="HWC")
+
+
+def _grads_finite(optimizer: torch.optim.Optimizer) -> bool:
+    grads = [p.grad for g in optimizer.param_groups for p in g["params"] if p.grad is not None]
+    if not grads:
+        return True
+    norms = torch._foreach_norm(grads)
+    return bool(torch.isfinite(torch.stack(norms)).all())
+
+
+def _tensorboard(run_dir: Path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(log_dir=str(run_dir / "tb"))
