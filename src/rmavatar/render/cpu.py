@@ -1,0 +1,79 @@
+"""CPU backend: tile binning and compositing in Numba, wrapped as a torch autograd function."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rmavatar.render import kernels
+
+
+def _np64(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to(device="cpu", dtype=torch.float64).numpy())
+
+
+class _Binning:
+    """Depth-sorted tile lists for one view (plain numpy, not differentiable)."""
+
+    def __init__(self, means2d: Tensor, radii_xy: Tensor, depths: Tensor, visible: Tensor, width: int, height: int):
+        self.width, self.height = int(width), int(height)
+        self.tiles_x = math.ceil(self.width / kernels.TILE)
+        self.tiles_y = math.ceil(self.height / kernels.TILE)
+        vis_ids = torch.nonzero(visible, as_tuple=False)[:, 0].cpu().numpy()
+        d = _np64(depths)[vis_ids]
+        # Stable sort: equal depths keep index order, matching a stable global sort.
+        order = vis_ids[np.argsort(d, kind="stable")].astype(np.int64)
+        radii = np.ascontiguousarray(radii_xy.detach().cpu().numpy().astype(np.int64))
+        self.offsets, self.ids = kernels.bin_tiles(_np64(means2d), radii, order, self.tiles_x, self.tiles_y)
+
+
+class _Composite(torch.autograd.Function):
+    """(means2d [N,2], conics [N,3], colors [N,3], opacities [N], background [3]) -> image [H,W,3],
+    alpha [H,W,1], with an analytic backward."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, background, binning: _Binning):
+        arrays = (_np64(means2d), _np64(conics), _np64(colors), _np64(opacities), _np64(background))
+        image, t_final, n_last = kernels.composite_forward(
+            *arrays, binning.offsets, binning.ids, binning.width, binning.height, binning.tiles_x
+        )
+        ctx.arrays = arrays
+        ctx.binning = binning
+        ctx.t_final = t_final
+        ctx.n_last = n_last
+        dtype = colors.dtype
+        image_t = torch.from_numpy(image).to(dtype)
+        alpha_t = torch.from_numpy(1.0 - t_final).to(dtype)[..., None]
+        return image_t, alpha_t
+
+    @staticmethod
+    def backward(ctx, v_image, v_alpha):
+        b = ctx.binning
+        grads, v_bg = kernels.composite_backward(
+            *ctx.arrays, b.offsets, b.ids, b.width, b.height, b.tiles_x, ctx.t_final, ctx.n_last,
+            _np64(v_image), _np64(v_alpha[..., 0]),
+        )
+        n = ctx.arrays[0].shape[0]
+        per_g = torch.from_numpy(kernels.sum_per_gaussian(grads, b.ids, n))
+        dtype = v_image.dtype
+        return (
+            per_g[:, 0:2].to(dtype),
+            per_g[:, 2:5].to(dtype),
+            per_g[:, 5:8].to(dtype),
+            per_g[:, 8].to(dtype),
+            torch.from_numpy(v_bg).to(dtype),
+            None,
+        )
+
+
+def composite(
+    means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, background: Tensor,
+    radii_xy: Tensor, depths: Tensor, visible: Tensor, width: int, height: int,
+) -> tuple[Tensor, Tensor]:
+    """Alpha-composite projected Gaussians front to back. Shapes as in ``project.Projection``;
+    colors [N,3], opacities [N], background [3]. Returns image [H,W,3] and alpha [H,W,1]."""
+    binning = _Binning(means2d, radii_xy, depths, visible, width, height)
+    return _Composite.apply(means2d, conics, colors, opacities, background, binning)

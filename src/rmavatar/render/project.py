@@ -1,0 +1,150 @@
+"""EWA projection of 3D Gaussians and spherical-harmonics colours, in plain differentiable PyTorch.
+
+Follows gsplat 1.5's pinhole "classic" rules so the CPU and CUDA backends draw the same picture:
+OpenCV camera (x right, y down, z forward), world-to-camera ``viewmat``, wxyz quaternions normalised
+here, 0.3 px^2 low-pass dilation of the 2D covariance, near plane 0.01, and an opacity-aware
+3-sigma box (extent ``min(3.33, sqrt(2 ln(255 opacity)))`` standard deviations per axis).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+EPS2D = 0.3  # low-pass dilation added to the 2D covariance diagonal (pixels^2)
+NEAR_PLANE = 0.01
+FAR_PLANE = 1e10
+ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
+
+
+@dataclass
+class Projection:
+    """Per-Gaussian screen-space quantities. Rows with ``visible`` False hold harmless finite values.
+
+    means2d [N,2] pixels, conics [N,3] (a, b, c of the inverse 2D covariance [[a,b],[b,c]]),
+    depths [N] camera z, radii_xy [N,2] int32 half extents of the pixel box (0 when culled),
+    visible [N] bool.
+    """
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    radii_xy: Tensor
+    visible: Tensor
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices [N,3,3] from wxyz quaternions [N,4] (normalised here)."""
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def project_gaussians(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+    viewmat: Tensor, K: Tensor, width: int, height: int,
+) -> Projection:
+    """Project Gaussians (means [N,3], quats [N,4], scales [N,3], opacities [N]) to the image.
+
+    ``viewmat`` [4,4] world->camera, ``K`` [3,3]. Differentiable w.r.t. the Gaussian inputs.
+    """
+    rot_view = viewmat[:3, :3]
+    mean_c = means @ rot_view.T + viewmat[:3, 3]
+    x, y, z = mean_c.unbind(-1)
+    in_depth = (z >= NEAR_PLANE) & (z <= FAR_PLANE)
+    # Culled rows still flow through the maths; a safe depth keeps their (unused) gradients finite.
+    zs = torch.where(in_depth, z, torch.ones_like(z))
+
+    R = quat_to_rotmat(quats)
+    M = R * scales[:, None, :]
+    covar = M @ M.transpose(-1, -2)
+    covar_c = rot_view @ covar @ rot_view.T
+
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_fovx = 0.5 * width / fx
+    tan_fovy = 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    # The Jacobian is evaluated at the point clamped to a guard band around the frustum. As in
+    # gsplat's hand-written backward the clamp itself is not differentiated (straight-through).
+    tx = x + (zs * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x / zs)) - x).detach()
+    ty = y + (zs * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y / zs)) - y).detach()
+    rz = 1.0 / zs
+    zero = torch.zeros_like(rz)
+    J = torch.stack(
+        [fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1
+    ).reshape(-1, 2, 3)
+    cov2d = J @ covar_c @ J.transpose(-1, -2)
+    a = cov2d[:, 0, 0] + EPS2D
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + EPS2D
+    det = a * c - b * b
+    ok_det = det > 0
+    det_safe = torch.where(ok_det, det, torch.ones_like(det))
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
+
+    with torch.no_grad():
+        op = opacities.detach()
+        ok_op = op >= ALPHA_MIN
+        extend = torch.sqrt(2.0 * torch.log(op.clamp_min(ALPHA_MIN) / ALPHA_MIN)).clamp_max(3.33)
+        rx = torch.ceil(extend * a.detach().clamp_min(0).sqrt())
+        ry = torch.ceil(extend * c.detach().clamp_min(0).sqrt())
+        mx, my = means2d.detach().unbind(-1)
+        on_screen = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
+        visible = in_depth & ok_det & ok_op & ((rx > 0) | (ry > 0)) & on_screen
+        radii_xy = torch.stack([rx, ry], dim=-1).to(torch.int32) * visible[:, None]
+    return Projection(means2d, conics, z, radii_xy, visible)
+
+
+# Real spherical-harmonics constants in the 3DGS/gsplat sign convention (Condon-Shortley phase kept).
+_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (
+    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
+)
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """SH basis values [N,(degree+1)^2] for directions [N,3] (normalised here), degree 0..3."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree must be 0..3, got {degree}")
+    d = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, _C0)]
+    if degree >= 1:
+        out += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [
+            _C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2 * zz - xx - yy),
+            _C2[3] * x * z, _C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            _C3[0] * y * (3 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4 * zz - xx - yy),
+            _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
+            _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def sh_to_rgb(sh: Tensor, degree: int, means: Tensor, campos: Tensor) -> Tensor:
+    """RGB [N,3] seen from ``campos`` [3]: SH coefficients sh [N,K,3] (K >= (degree+1)^2) evaluated
+    along the camera->Gaussian direction, then ``max(value + 0.5, 0)`` as gsplat does."""
+    k = (degree + 1) ** 2
+    basis = sh_basis(degree, means - campos)
+    return torch.clamp_min((basis[:, :, None] * sh[:, :k, :]).sum(1) + 0.5, 0.0)
