@@ -1,0 +1,50 @@
+"""Exporting a posed avatar: pick the pose, compute its world-space Gaussians, write the PLY."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from rmavatar.animate.drive import Poser
+from rmavatar.animate.motion import PoseSequence, motion_to_sequence, rest_pose
+from rmavatar.export.ply import write_ply
+from rmavatar.utils import UserError
+
+
+def check_ply_output(path: Path) -> Path:
+    """Fail early, before loading anything, when ``path`` cannot become a PLY file."""
+    if path.suffix.lower() != ".ply":
+        raise UserError(f"--ply {path}: the output file name must end in .ply")
+    if path.is_dir():
+        raise UserError(f"--ply {path} is a folder")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise UserError(f"cannot write {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"cannot write {path}: folder {parent} is not writable")
+    return path
+
+
+def pose_for_export(motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
+    """One pose: frame ``frame`` of a motion file, else the rest pose ``rest`` at the origin."""
+    if motion_path is None:
+        go, pose = rest_pose(rest)
+        return PoseSequence(go[None], pose[None], torch.zeros(1, 3))
+    from rmavatar.body import load_motion
+
+    seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
+    n = len(seq)
+    if not -n <= frame < n:
+        raise UserError(f"--frame {frame} is out of range: {motion_path} has {n} frames")
+    k = frame % n
+    return seq.select(slice(k, k + 1))
+
+
+def export_ply(run, seq: PoseSequence, out: str | os.PathLike) -> int:
+    """Write the avatar of ``run`` (a LoadedRun) posed by the single pose ``seq`` to ``out``; returns N."""
+    poser = Poser.from_run(run)
+    gs = poser.gaussians(poser.vertices(seq)[0], seq.body_pose[0])
+    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)
+    return int(gs.means.shape[0])

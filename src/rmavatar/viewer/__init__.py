@@ -1,0 +1,1 @@
+"""Interactive browser viewer for avatars (viser), and headless-Chromium screenshots to test it."""
