@@ -1,0 +1,452 @@
+"""Datasets: the native format, PeopleSnapshot and ZJU-MoCap on fixtures built here (tiny images)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from rmavatar.data import Camera, NativeMeta, load_dataset, write_native
+from rmavatar.data.dataset import parse_spec, target_size
+from rmavatar.data.io import resample
+from rmavatar.data.peoplesnapshot import SUBJECTS, split_frames
+from rmavatar.data.zju import SPLITS as ZJU_SPLITS
+from rmavatar.data.zju import undistort_maps, zju_to_smpl_params
+from rmavatar.utils import UserError
+
+RNG = np.random.default_rng(0)
+
+
+def rodrigues(r):
+    """Axis-angle [3] -> rotation matrix [3,3], written out (independent of scipy)."""
+    r = np.asarray(r, np.float64)
+    theta = np.linalg.norm(r)
+    if theta < 1e-12:
+        return np.eye(3)
+    k = r / theta
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * Kx @ Kx
+
+
+def save_png(path, arr):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(arr).save(path)
+
+
+# --- Camera ----------------------------------------------------------------------------------------
+
+def test_camera_resized_scales_K_and_matches_resampled_pixels():
+    K = np.array([[20.0, 0, 4.0], [0, 22.0, 3.0], [0, 0, 1]])
+    cam = Camera(K, np.eye(4), 8, 6)
+    small = cam.resized(4, 3)
+    np.testing.assert_allclose(small.K, np.diag([0.5, 0.5, 1]) @ K, atol=1e-6)
+    odd = cam.resized(6, 5)
+    np.testing.assert_allclose(odd.K, np.diag([6 / 8, 5 / 6, 1]) @ K, atol=1e-5)
+    assert (small.width, small.height) == (4, 3)
+
+    # A 3D point that projects to the centre of a block of bright pixels, and the block resampled to
+    # a size where the block covers whole output pixels: the resized camera projects the point to the
+    # block's new centroid (pixel centres at +0.5 in both).
+    for (W, H), (x0, x1, y0, y1), (w, h) in (((8, 6), (2, 4, 2, 4), (4, 3)),
+                                             ((12, 6), (6, 9, 2, 4), (4, 3)),
+                                             ((12, 12), (3, 9, 6, 9), (4, 4))):
+        cam = Camera(K, np.eye(4), W, H)
+        centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+        point = np.linalg.inv(K) @ np.array([*centre, 1.0]) * 2.0
+        np.testing.assert_allclose(cam.project(point[None])[0], centre, atol=1e-5)
+        img = np.zeros((H, W), np.float32)
+        img[y0:y1, x0:x1] = 1
+        out = resample(img, w, h)
+        ys, xs = np.mgrid[0:h, 0:w]
+        centroid = np.array([(out * (xs + 0.5)).sum(), (out * (ys + 0.5)).sum()]) / out.sum()
+        np.testing.assert_allclose(cam.resized(w, h).project(point[None])[0], centroid, atol=1e-4)
+
+
+def test_target_size_and_spec_parsing(tmp_path):
+    assert target_size(1080, 1080, 540) == (540, 540)
+    assert target_size(1000, 500, 256) == (256, 128)
+    assert target_size(1000, 500, (100, 60)) == (100, 60)
+    assert target_size(8, 6, None) == (8, 6)
+    assert parse_spec("zju:/a/b?camera=3&mask=cihp") == ("zju", tmp_path.__class__("/a/b"),
+                                                           {"camera": "3", "mask": "cihp"})
+    kind, path, opts = parse_spec("/a/what?x")
+    assert kind is None and str(path) == "/a/what?x" and opts == {}
+
+
+# --- native format ---------------------------------------------------------------------------------
+
+def make_native(out, n=6, h=6, w=8, per_frame=True, betas_per_frame=False):
+    images = [RNG.random((h, w, 3)).astype(np.float32) for _ in range(n)]
+    masks = [RNG.random((h, w)).astype(np.float32) for _ in range(n)]
+    K = np.array([[10.0, 0, 4], [0, 10, 3], [0, 0, 1]], np.float32)
+    if per_frame:
+        cams = [Camera(K * np.array([[1 + i, 1, 1], [1, 1 + i, 1], [1, 1, 1]], np.float32),
+                       np.eye(4), w, h) for i in range(n)]
+    else:
+        cams = Camera(K, np.eye(4), w, h)
+    params = {
+        "betas": RNG.normal(size=(n, 10) if betas_per_frame else (10,)),
+        "global_orient": RNG.normal(size=(n, 3)),
+        "body_pose": RNG.normal(size=(n, 69)) * 0.1,
+        "transl": RNG.normal(size=(n, 3)),
+    }
+    meta = NativeMeta(name="subject", splits={"train": [0, 2, 4], "test": [1, 3], "novel_pose": [5]},
+                      fps=25, gender="female", body="anny:female", extra={"seed": np.int64(3)})
+    write_native(out, meta, cams, params, iter(images), (m for m in masks), progress=False)
+    return images, masks, cams, params
+
+
+def test_native_roundtrip(tmp_path):
+    out = tmp_path / "nat"
+    images, masks, cams, params = make_native(out, betas_per_frame=True)
+    ds = load_dataset(str(out))
+    assert (ds.kind, ds.name, ds.gender, ds.body, ds.fps) == ("native", "subject", "female", "anny:female", 25)
+    assert ds.splits == {"train": [0, 2, 4], "test": [1, 3], "novel_pose": [5]}
+    assert [ds.num_frames(s) for s in ("train", "test", "novel_pose")] == [3, 2, 1]
+    f = ds.frame("test", 1)
+    assert f.index == 3 and f.split == "test"
+    assert f.image.dtype == np.float32 and f.image.shape == (6, 8, 3)
+    np.testing.assert_allclose(f.image, images[3], atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(f.mask, masks[3], atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(f.camera.K, cams[3].K, atol=1e-6)
+    for key in ("betas", "global_orient", "body_pose", "transl"):
+        np.testing.assert_allclose(getattr(f, key), params[key][3], atol=1e-6)
+    p = ds.params("train")
+    np.testing.assert_allclose(p["transl"], params["transl"][[0, 2, 4]], atol=1e-6)
+    assert list(p["index"]) == [0, 2, 4]
+
+
+def test_native_single_camera_broadcast_and_resize(tmp_path):
+    out = tmp_path / "nat"
+    images, masks, cam, params = make_native(out, per_frame=False)
+    ds = load_dataset(f"native:{out}", size=4)
+    assert ds.image_size == (4, 3)
+    f = ds.frame("train", 2)
+    assert f.image.shape == (3, 4, 3) and f.mask.shape == (3, 4)
+    np.testing.assert_allclose(f.camera.K, np.diag([0.5, 0.5, 1]) @ cam.K, atol=1e-6)
+    # box-filter downsampling by 2: each output pixel is the mean of its 2x2 block
+    ref = images[4].reshape(3, 2, 4, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(f.image, ref, atol=1 / 255)
+    np.testing.assert_allclose(f.betas, params["betas"], atol=1e-6)
+
+
+def test_native_cache_is_bounded(tmp_path):
+    out = tmp_path / "nat"
+    make_native(out)
+    ds = load_dataset(out, cache_mb=2 * (6 * 8 * 4 * 4) / 2**20)  # room for two frames
+    first = ds.frame("train", 0).image
+    for i in range(3):
+        ds.frame("train", i)
+    assert len(ds._cache) == 2 and ds._cache_bytes <= ds._cache_limit
+    assert ds.frame("train", 2).image is ds.frame("train", 2).image  # a hit returns the cached array
+    np.testing.assert_array_equal(ds.frame("train", 0).image, first)
+    with pytest.raises(ValueError):
+        first[0, 0, 0] = 1  # cached arrays are read-only
+
+
+def test_native_write_is_atomic_and_checks_counts(tmp_path):
+    out = tmp_path / "nat"
+    out.mkdir()
+    (out / "keep.txt").write_text("old")
+    n = 4
+    params = {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
+              "transl": np.zeros((n, 3))}
+    cam = Camera(np.eye(3), np.eye(4), 8, 6)
+    imgs = (np.zeros((6, 8, 3)) for _ in range(3))  # one short
+    masks = (np.zeros((6, 8)) for _ in range(n))
+    with pytest.raises(UserError, match="3 images for 4 frames"):
+        write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params, imgs, masks, progress=False)
+    assert (out / "keep.txt").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["nat"]  # no temporary folder left behind
+    with pytest.raises(UserError, match="more images"):
+        write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params,
+                     [np.zeros((6, 8, 3))] * 5, [np.zeros((6, 8))] * 4, progress=False)
+    with pytest.raises(UserError, match="outside"):
+        write_native(out, {"name": "x", "splits": {"train": [7]}}, cam, params,
+                     [np.zeros((6, 8, 3))] * 4, [np.zeros((6, 8))] * 4, progress=False)
+    with pytest.raises(UserError, match="cameras are 8x6, images 9x6"):
+        write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params,
+                     [np.zeros((6, 9, 3))] * 4, [np.zeros((6, 9))] * 4, progress=False)
+    assert (out / "keep.txt").read_text() == "old"
+
+
+def test_native_bad_input(tmp_path):
+    with pytest.raises(UserError, match="does not exist"):
+        load_dataset(tmp_path / "nope")
+    with pytest.raises(UserError, match="not a dataset"):
+        load_dataset(tmp_path)
+    out = tmp_path / "nat"
+    make_native(out)
+    (out / "masks" / "00003.png").unlink()
+    with pytest.raises(UserError, match=r"frame 3 has no mask: .*masks/00003.png"):
+        load_dataset(out)
+    make_native(out)
+    (out / "images" / "00002.png").write_bytes(b"not a png")
+    ds = load_dataset(out)
+    with pytest.raises(UserError, match=r"cannot read image .*images/00002.png"):
+        ds.frame("train", 1)
+    make_native(out)
+    np.savez(out / "cameras.npz", K=np.eye(3))
+    with pytest.raises(UserError, match=r"cameras.npz is missing \['viewmat'\]"):
+        load_dataset(out)
+    make_native(out)
+    z = dict(np.load(out / "smpl.npz"))
+    z["transl"] = z["transl"][:5]
+    z["global_orient"] = z["global_orient"][:5]
+    z["body_pose"] = z["body_pose"][:5]
+    np.savez(out / "smpl.npz", **z)
+    with pytest.raises(UserError, match=r"smpl.npz has 5 frames, meta.yaml says 6"):
+        load_dataset(out)
+
+
+# --- PeopleSnapshot --------------------------------------------------------------------------------
+
+SPEC_COUNTS = {  # SPEC §3's table: train / val / test frame counts
+    "male-3-casual": (114, 1, 55), "male-4-casual": (110, 1, 36),
+    "female-3-casual": (112, 1, 51), "female-4-casual": (84, 1, 48),
+}
+
+
+def test_peoplesnapshot_standard_split_counts():
+    for subject, counts in SPEC_COUNTS.items():
+        _, table = SUBJECTS[subject]
+        assert tuple(len(split_frames(*table[s])) for s in ("train", "val", "test")) == counts
+
+
+def make_peoplesnapshot(root, frames_by_split, size=(6, 4), mask_kind="npy", total=None):
+    """A subject folder in InstantAvatar's layout; returns per-split betas."""
+    w, h = size
+    root.mkdir(parents=True)
+    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
+    np.savez(root / "cameras.npz", intrinsic=K, extrinsic=np.eye(4), height=h, width=w)
+    frames = sorted({i for f in frames_by_split.values() for i in f}) if total is None else range(total)
+    for i in frames:
+        img = np.full((h, w, 3), i % 256, np.uint8)
+        save_png(root / "images" / f"image_{i:04d}.png", img)
+        m = np.zeros((h, w), np.uint8)
+        m[:, : w // 2] = 1
+        if mask_kind == "npy":
+            (root / "masks").mkdir(exist_ok=True)
+            np.save(root / "masks" / f"mask_{i:04d}.npy", m)
+        else:
+            soft = m * 255
+            soft[0, 0] = 128
+            save_png(root / "masks" / f"mask_{i:04d}.png", soft)
+    (root / "poses").mkdir()
+    betas = {}
+    for split, fr in frames_by_split.items():
+        n = len(fr)
+        betas[split] = RNG.normal(size=(1, 10)).astype(np.float32)
+        transl = np.zeros((n, 3), np.float32)
+        transl[:, 0] = fr  # the frame number, to check the row order
+        np.savez(root / "poses" / f"anim_nerf_{split}.npz", betas=betas[split],
+                 global_orient=np.tile([math.pi, 0, 0], (n, 1)), body_pose=np.zeros((n, 69)), transl=transl)
+    return betas
+
+
+def test_peoplesnapshot_standard_subject(tmp_path):
+    _, table = SUBJECTS["male-3-casual"]
+    frames = {s: split_frames(*r) for s, r in table.items()}
+    root = tmp_path / "male-3-casual"
+    betas = make_peoplesnapshot(root, frames)
+    ds = load_dataset(root)
+    assert ds.kind == "peoplesnapshot" and ds.gender == "male" and ds.name == "male-3-casual"
+    assert {s: ds.num_frames(s) for s in ds.splits} == {"train": 114, "val": 1, "test": 55}
+    f = ds.frame("test", 2)
+    assert f.index == 464 and f.transl[0] == 464
+    np.testing.assert_allclose(f.image, 464 % 256 / 255, atol=1e-6)
+    # betas per split: each split's own file applies to its frames
+    np.testing.assert_allclose(ds.frame("train", 5).betas, betas["train"][0], atol=1e-6)
+    np.testing.assert_allclose(f.betas, betas["test"][0], atol=1e-6)
+    np.testing.assert_allclose(ds.frame("val", 0).betas, betas["val"][0], atol=1e-6)
+    assert not np.allclose(betas["train"], betas["test"])
+    np.testing.assert_array_equal(f.mask, np.repeat([[1, 1, 1, 0, 0, 0]], 4, axis=0))
+
+
+def test_peoplesnapshot_png_soft_masks_and_unknown_subject(tmp_path):
+    root = tmp_path / "my-subject"
+    make_peoplesnapshot(root, {"train": list(range(5)), "test": list(range(5))}, mask_kind="png")
+    ds = load_dataset(f"peoplesnapshot:{root}")
+    assert ds.splits == {"train": [0, 1, 2, 3, 4], "test": [0, 1, 2, 3, 4]}
+    assert ds.gender == "neutral"
+    m = ds.frame("train", 0).mask
+    assert m.dtype == np.float32 and m[0, 0] == pytest.approx(128 / 255) and m[1, 0] == 1 and m[1, 5] == 0
+
+
+def test_peoplesnapshot_unknown_subject_needs_splits_file(tmp_path):
+    root = tmp_path / "female-x"
+    make_peoplesnapshot(root, {"train": [0, 2, 4], "test": [1, 3]}, total=5)
+    with pytest.raises(UserError, match="splits.yaml"):
+        load_dataset(root)
+    (root / "splits.yaml").write_text("train: {start: 0, end: 4, step: 2}\ntest: [1, 3]\n")
+    ds = load_dataset(root)
+    assert ds.splits == {"train": [0, 2, 4], "test": [1, 3]} and ds.gender == "female"
+    assert ds.frame("test", 1).transl[0] == 3
+
+
+def test_peoplesnapshot_bad_input(tmp_path):
+    root = tmp_path / "s"
+    make_peoplesnapshot(root, {"train": [0, 1, 2]})
+    np.savez(root / "cameras.npz", intrinsic=np.eye(3), extrinsic=np.eye(4), width=6)
+    with pytest.raises(UserError, match=r"s/cameras.npz is missing \['height'\]"):
+        load_dataset(root)
+    root = tmp_path / "t"
+    make_peoplesnapshot(root, {"train": [0, 1, 2]})
+    (root / "masks" / "mask_0001.npy").unlink()
+    with pytest.raises(UserError, match=r"frame 1 of split 'train' has no mask: .*mask_0001.npy"):
+        load_dataset(root)
+    root = tmp_path / "male-4-casual"
+    make_peoplesnapshot(root, {"train": split_frames(0, 659, 6), "val": [660], "test": [660]})
+    z = dict(np.load(root / "poses" / "anim_nerf_train.npz"))
+    np.savez(root / "poses" / "anim_nerf_train.npz", **{k: v if k == "betas" else v[:109] for k, v in z.items()})
+    with pytest.raises(UserError, match=r"anim_nerf_train.npz has 109 poses .* for the 110 frames"):
+        load_dataset(root)
+
+
+# --- ZJU-MoCap -------------------------------------------------------------------------------------
+
+def test_zju_rh_th_conversion_rigid():
+    """ZJU's placement x = R(Rh) SMPL(poses) + Th equals SMPL-style global_orient/transl about J0."""
+    X = RNG.normal(size=(50, 3))  # a body's vertices articulated below the root (LBS-free check)
+    for root_rot in (np.zeros(3), RNG.normal(size=3) * 0.7):
+        Rh, Th, J0 = RNG.normal(size=3) * 1.2, RNG.normal(size=3), np.array([0.01, -0.23, 0.03])
+        poses = np.concatenate([root_rot, RNG.normal(size=69) * 0.2])
+        smpl_zju = (X - J0) @ rodrigues(root_rot).T + J0  # SMPL(poses): root rotation about J0
+        zju_world = smpl_zju @ rodrigues(Rh).T + Th
+        out = zju_to_smpl_params(Rh[None], Th[None], poses[None], J0)
+        ours = (X - J0) @ rodrigues(out["global_orient"][0]).T + J0 + out["transl"][0]
+        np.testing.assert_allclose(ours, zju_world, atol=1e-5)
+        np.testing.assert_allclose(out["body_pose"][0], poses[3:], atol=1e-7)
+    # with J0 at the origin the two conventions coincide
+    out = zju_to_smpl_params(Rh[None], Th[None], np.zeros((1, 72)), np.zeros(3))
+    np.testing.assert_allclose(out["transl"][0], Th, atol=1e-6)
+
+
+def make_zju(root, num_frames, w=8, h=6, D=None, n_cams=2):
+    root.mkdir(parents=True)
+    Ks = [np.array([[40.0 + c, 0, w / 2], [0, 40.0 + c, h / 2], [0, 0, 1]]) for c in range(n_cams)]
+    Rs = [rodrigues([0, 0.3 * c, 0]) for c in range(n_cams)]
+    Ts = [np.array([[100.0 * c], [-200.0], [3000.0]]) for c in range(n_cams)]  # millimetres
+    Ds = [np.zeros((5, 1)) if D is None else np.asarray(D, float).reshape(5, 1) for _ in range(n_cams)]
+    ims = []
+    for i in range(num_frames):
+        paths = [f"Camera_B{c + 1}/{i:06d}.jpg" for c in range(n_cams)]
+        ims.append({"ims": np.array(paths)})
+    np.save(root / "annots.npy", {"cams": {"K": Ks, "D": Ds, "R": Rs, "T": Ts}, "ims": np.array(ims)},
+            allow_pickle=True)
+    (root / "new_params").mkdir()
+    return Ks, Rs, Ts
+
+
+def add_zju_frame(root, i, w=8, h=6, n_cams=2, image=None):
+    for c in range(n_cams):
+        img = np.full((h, w, 3), 200, np.uint8) if image is None else image
+        p = root / f"Camera_B{c + 1}" / f"{i:06d}.jpg"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(img).save(p, quality=95)
+        m1 = np.zeros((h, w), np.uint8)
+        m1[:, : w // 2] = 1  # mask/: left half, label 1
+        m2 = np.zeros((h, w), np.uint8)
+        m2[: h // 2] = 255  # mask_cihp/: top half, label 255
+        save_png(root / "mask" / f"Camera_B{c + 1}" / f"{i:06d}.png", m1)
+        save_png(root / "mask_cihp" / f"Camera_B{c + 1}" / f"{i:06d}.png", m2)
+    np.save(root / "new_params" / f"{i}.npy", {
+        "poses": np.concatenate([[0, 0, 0], np.full(69, 0.01 * i)])[None],
+        "Rh": np.array([[0.1 * i, 0.2, 0.0]]), "Th": np.array([[0.0, 0.5, float(i)]]),
+        "shapes": np.full((1, 10), 0.1)}, allow_pickle=True)
+
+
+def j0_of(betas):
+    return np.tile([0.0, -0.2, 0.02], (len(betas), 1)) + betas[:, :1] * np.array([0, 1.0, 0])
+
+
+def test_zju_paper_split_camera_and_params(tmp_path):
+    root = tmp_path / "CoreView_377"
+    last_train, last_test = ZJU_SPLITS["377"]
+    Ks, Rs, Ts = make_zju(root, last_test)
+    for i in list(range(0, last_train, 4)) + list(range(last_train, last_test)):
+        add_zju_frame(root, i)
+    ds = load_dataset(f"{root}?camera=1", body=j0_of)
+    assert ds.kind == "zju" and ds.gender == "neutral"
+    assert {s: ds.num_frames(s) for s in ds.splits} == {"train": 114, "test": 161}
+    assert ds.splits["train"][:3] == [0, 4, 8] and ds.splits["test"][0] == 456
+    f = ds.frame("train", 1)
+    np.testing.assert_allclose(f.camera.viewmat[:3, 3], Ts[1][:, 0] / 1000, atol=1e-6)  # mm -> m
+    np.testing.assert_allclose(f.camera.viewmat[:3, :3], Rs[1], atol=1e-6)
+    np.testing.assert_allclose(f.camera.K, Ks[1], atol=1e-6)
+    # conversion with the provider's J0 for these shapes (0.1 -> J0 = (0, -0.1, 0.02))
+    J0 = np.array([0.0, -0.1, 0.02])
+    Rh, Th = np.array([0.4, 0.2, 0.0]), np.array([0.0, 0.5, 4.0])
+    X = RNG.normal(size=(20, 3))
+    zju_world = X @ rodrigues(Rh).T + Th  # poses[:3] = 0: SMPL(poses) = X
+    ours = (X - J0) @ rodrigues(f.global_orient).T + J0 + f.transl
+    np.testing.assert_allclose(ours, zju_world, atol=1e-5)
+    np.testing.assert_allclose(f.body_pose, 0.04, atol=1e-6)
+    np.testing.assert_allclose(f.betas, 0.1, atol=1e-6)
+    # masks: union of mask/ (left half) and mask_cihp/ (top half)
+    expect = np.zeros((6, 8), np.float32)
+    expect[:, :4] = 1
+    expect[:3] = 1
+    np.testing.assert_array_equal(f.mask, expect)
+    only_cihp = load_dataset(f"zju:{root}", body=j0_of, mask="cihp").frame("test", 0)
+    np.testing.assert_array_equal(only_cihp.mask[:, 0], [1, 1, 1, 0, 0, 0])
+
+
+def test_zju_undistortion_moves_points_to_the_undistorted_projection(tmp_path):
+    w, h = 48, 36
+    D = np.array([-0.6, 0.1, 0.01, -0.005, 0.0])
+    root = tmp_path / "CoreView_500"
+    (K,), _, _ = make_zju(root, 1, w=w, h=h, D=D, n_cams=1)
+    f, cx, cy = K[0, 0], K[0, 2], K[1, 2]
+    # OpenCV's distortion by hand: the undistorted pixel (u, v) = (44, 33) is seen in the distorted
+    # image at (ud, vd), about 4 px closer to the centre (barrel distortion)
+    x, y = (44 - cx) / f, (33 - cy) / f
+    r2 = x * x + y * y
+    rad = 1 + D[0] * r2 + D[1] * r2**2
+    ud = f * (x * rad + 2 * D[2] * x * y + D[3] * (r2 + 2 * x * x)) + cx
+    vd = f * (y * rad + D[2] * (r2 + 2 * y * y) + 2 * D[3] * x * y) + cy
+    assert 44 - ud > 3 and 33 - vd > 2
+    rows, cols = undistort_maps(K, D, w, h)
+    assert (cols[33, 44], rows[33, 44]) == (pytest.approx(ud, abs=1e-4), pytest.approx(vd, abs=1e-4))
+    # a bright dot drawn in the distorted image where that point is seen lands at (44, 33) after loading
+    ys, xs = np.mgrid[0:h, 0:w]
+    dot = np.exp(-((xs - ud) ** 2 + (ys - vd) ** 2) / (2 * 1.0**2))
+    img = np.repeat((dot * 255).round().astype(np.uint8)[..., None], 3, axis=2)
+    add_zju_frame(root, 0, w=w, h=h, n_cams=1, image=img)
+    with pytest.warns(UserWarning, match="no standard split"):
+        ds = load_dataset(root, body=j0_of)
+    got = ds.frame("train", 0).image[..., 0]
+    assert np.unravel_index(np.argmax(got), got.shape) == (33, 44)
+    raw = ds._read_pixels(ds._records["train"][0])[0][..., 0]  # undistorted at source size
+    assert raw[33, 44] > 0.8 and got[int(round(vd)), int(round(ud))] < 0.2
+
+
+def test_zju_bad_input(tmp_path):
+    root = tmp_path / "CoreView_377"
+    make_zju(root, 617)
+    with pytest.raises(UserError, match=r"CoreView_377 has no mask folder"):
+        load_dataset(root, body=j0_of)
+    (root / "mask").mkdir()
+    with pytest.raises(UserError, match=r"frame 0 has no image: .*Camera_B1/000000.jpg"):
+        load_dataset(root, body=j0_of)
+    for i in list(range(0, 456, 4)) + list(range(456, 617)):
+        add_zju_frame(root, i)
+    (root / "mask" / "Camera_B1" / "000004.png").unlink()
+    (root / "mask_cihp" / "Camera_B1" / "000004.png").unlink()
+    with pytest.raises(UserError, match=r"frame 4 has no mask"):
+        load_dataset(root, body=j0_of)
+    add_zju_frame(root, 4)
+    np.save(root / "new_params" / "8.npy", {"poses": np.zeros((1, 72)), "Rh": np.zeros((1, 3))},
+            allow_pickle=True)
+    with pytest.raises(UserError, match=r"new_params/8.npy is missing 'Th'"):
+        load_dataset(root, body=j0_of)
+    add_zju_frame(root, 8)
+    with pytest.raises(UserError, match="has 2 cameras"):
+        load_dataset(root, body=j0_of, camera=5)
+    annots = np.load(root / "annots.npy", allow_pickle=True).item()
+    del annots["cams"]["T"]
+    np.save(root / "annots.npy", annots, allow_pickle=True)
+    with pytest.raises(UserError, match=r"annots.npy: cams is missing \['T'\]"):
+        load_dataset(root, body=j0_of)
