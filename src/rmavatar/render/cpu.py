@@ -44,9 +44,10 @@ class _Composite(torch.autograd.Function):
         ctx.binning = binning
         ctx.t_final = t_final
         ctx.n_last = n_last
+        ctx.device = means2d.device
         dtype = colors.dtype
-        image_t = torch.from_numpy(image).to(dtype)
-        alpha_t = torch.from_numpy(1.0 - t_final).to(dtype)[..., None]
+        image_t = torch.from_numpy(image).to(means2d.device, dtype)
+        alpha_t = torch.from_numpy(1.0 - t_final).to(means2d.device, dtype)[..., None]
         return image_t, alpha_t
 
     @staticmethod
@@ -58,13 +59,13 @@ class _Composite(torch.autograd.Function):
         )
         n = ctx.arrays[0].shape[0]
         per_g = torch.from_numpy(kernels.sum_per_gaussian(grads, b.ids, n))
-        dtype = v_image.dtype
+        dev, dtype = ctx.device, v_image.dtype
         return (
-            per_g[:, 0:2].to(dtype),
-            per_g[:, 2:5].to(dtype),
-            per_g[:, 5:8].to(dtype),
-            per_g[:, 8].to(dtype),
-            torch.from_numpy(v_bg).to(dtype),
+            per_g[:, 0:2].to(dev, dtype),
+            per_g[:, 2:5].to(dev, dtype),
+            per_g[:, 5:8].to(dev, dtype),
+            per_g[:, 8].to(dev, dtype),
+            torch.from_numpy(v_bg).to(dev, dtype),
             None,
         )
 
