@@ -1,0 +1,314 @@
+"""Mesh-embedded Gaussians with pose-conditioned rectification (paper §3.2-3.3, SPEC §2).
+
+Every Gaussian belongs to one triangle (``face_ids``) and stores its attributes in that triangle's
+local frame (units of the triangle scale w). Posing is a similarity transform per triangle:
+mu* = w R mu + M, r* = quat(R) (x) r, s* = w exp(log_scale); the rectifier then adds
+pose-dependent offsets: mu' = mu* + d_mu, r' = r* (x) normalize(1 + d_r), s' = s* + d_s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_frames
+from rmavatar.avatar.rectifier import POSE_DIM, Rectifier
+from rmavatar.utils import UserError
+
+SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
+
+# The per-Gaussian parameters, in the order density control and checkpoints see them.
+GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+@dataclass
+class AvatarConfig:
+    """How the avatar is built. ``placement``: "face" = one Gaussian per binding face (the paper);
+    "area" = ``num_gaussians`` in total, at least one per face, the rest given out by triangle area
+    (Anny's faces differ ~100x in size), placed uniformly inside their triangle."""
+
+    sh_degree: int = 3  # highest SH degree stored (0..3)
+    rectifier: bool = True  # False = the paper's "w/o GauRec": Gaussians fixed to their faces
+    num_freqs: int = 6
+    hidden: int = 128
+    init_opacity: float = 0.1
+    init_color: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    placement: str = "face"
+    num_gaussians: int | None = None  # total budget for placement="area"
+    # The rectified scale s* + d_s is clamped to this (metres): d_s is additive and may overshoot.
+    min_scale: float = 1e-6
+    seed: int = 0  # area placement sampling
+
+    def __post_init__(self):
+        if not 0 <= self.sh_degree <= 3:
+            raise UserError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if self.placement not in ("face", "area"):
+            raise UserError(f"placement must be 'face' or 'area', got {self.placement!r}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise UserError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.num_freqs < 1:
+            raise UserError(f"num_freqs must be >= 1, got {self.num_freqs}")
+
+
+@dataclass
+class GaussianSet:
+    """World-space Gaussians ready for ``rmavatar.render.rasterize``.
+
+    means [N,3], quats [N,4] (wxyz, unit), scales [N,3] (linear), opacities [N] in [0,1],
+    sh [N,K,3] with K = (sh_degree+1)^2 (colour = 0.5 + SH evaluation, the gsplat convention),
+    offsets = (d_mu [N,3], d_s [N,3], d_r [N,4]) of the rectifier, or None without one.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    sh_degree: int
+    offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    face_ids: torch.Tensor | None = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+
+def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    tri = vertices[faces]
+    return 0.5 * torch.linalg.vector_norm(
+        torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1), dim=-1
+    )
+
+
+def area_counts(areas: torch.Tensor, total: int) -> torch.Tensor:
+    """Gaussians per face [F]: one each, the remaining ``total - F`` shared by area (largest remainder)."""
+    n = areas.shape[0]
+    if total < n:
+        raise UserError(f"num_gaussians ({total}) must be at least the number of binding faces ({n})")
+    extra = total - n
+    share = areas.double() / areas.double().sum().clamp_min(1e-30) * extra
+    base = share.floor().long()
+    left = extra - int(base.sum())
+    if left > 0:
+        base[torch.argsort(share - base.double(), descending=True)[:left]] += 1
+    return base + 1
+
+
+class Avatar(nn.Module):
+    """Gaussians embedded in the triangles of a body mesh, plus the rectification MLP.
+
+    Build with ``Avatar.from_body(body, config)`` or ``Avatar(faces, binding_faces, v_template,
+    config)``. ``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``.
+
+    Parameters (per Gaussian, names in GAUSSIAN_PARAMS; all in the parent triangle's frame):
+    means [N,3] (units of w), quats [N,4] wxyz (unnormalised), log_scales [N,3], opacity_logits [N],
+    sh_dc [N,1,3], sh_rest [N,K-1,3]. Buffers: face_ids [N] (index into ``faces``), faces [F,3],
+    binding_faces [Fb], rest_face_scale [F] (w of every face on ``v_template``),
+    active_sh_degree (grows during training like 3DGS).
+    """
+
+    def __init__(
+        self,
+        faces: torch.Tensor,
+        binding_faces: torch.Tensor | None,
+        v_template: torch.Tensor,
+        config: AvatarConfig | None = None,
+        init_colors: torch.Tensor | None = None,
+    ):
+        super().__init__()
+        config = config or AvatarConfig()
+        self.config = config
+        faces = torch.as_tensor(faces, dtype=torch.long)
+        v_template = torch.as_tensor(v_template, dtype=torch.float32)
+        if faces.dim() != 2 or faces.shape[1] != 3:
+            raise UserError(f"faces must be [F,3], got {tuple(faces.shape)}")
+        if v_template.dim() != 2 or v_template.shape[1] != 3:
+            raise UserError(f"v_template must be [V,3], got {tuple(v_template.shape)}")
+        if binding_faces is None:
+            binding_faces = torch.arange(faces.shape[0])
+        binding_faces = torch.as_tensor(binding_faces, dtype=torch.long)
+        if binding_faces.numel() == 0:
+            raise UserError("the body model has no binding faces to attach Gaussians to")
+        self.num_vertices = v_template.shape[0]
+        self.register_buffer("faces", faces)
+        self.register_buffer("binding_faces", binding_faces)
+        _, w_rest, _ = triangle_frames(v_template, faces)
+        self.register_buffer("rest_face_scale", w_rest)
+        self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
+
+        face_ids, means, log_scales = self._initial_layout(v_template, config)
+        n = face_ids.shape[0]
+        k = (config.sh_degree + 1) ** 2
+        colors = self._initial_colors(init_colors, face_ids, faces.shape[0])
+        self.register_buffer("face_ids", face_ids)
+        self.means = nn.Parameter(means)
+        self.quats = nn.Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1))
+        self.log_scales = nn.Parameter(log_scales)
+        p = config.init_opacity
+        self.opacity_logits = nn.Parameter(torch.full((n,), math.log(p / (1 - p))))
+        self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).unsqueeze(1))
+        self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
+        self.rectifier = Rectifier(config.num_freqs, config.hidden) if config.rectifier else None
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_body(cls, body, config: AvatarConfig | None = None, init_colors=None) -> "Avatar":
+        """Build from a ``rmavatar.body.BodyModel`` (its faces, binding_faces, v_template)."""
+        return cls(body.faces, getattr(body, "binding_faces", None), body.v_template, config, init_colors)
+
+    def _initial_layout(self, v_template, config):
+        bf = self.binding_faces
+        if config.placement == "face":
+            face_ids = bf.clone()
+            means = torch.zeros(bf.shape[0], 3)
+            log_scales = torch.zeros(bf.shape[0], 3)
+            return face_ids, means, log_scales
+        if config.num_gaussians is None:
+            raise UserError("placement='area' needs num_gaussians (the total Gaussian budget)")
+        counts = area_counts(_triangle_areas(v_template, self.faces[bf]), int(config.num_gaussians))
+        face_ids = torch.repeat_interleave(bf, counts)
+        gen = torch.Generator().manual_seed(config.seed)
+        # Uniform points in the triangle (square-root barycentric sampling), then to local coordinates.
+        u = torch.rand(face_ids.shape[0], 2, generator=gen)
+        su = u[:, 0].sqrt()
+        bary = torch.stack((1 - su, su * (1 - u[:, 1]), su * u[:, 1]), dim=-1)
+        # Faces with a single Gaussian keep it at the centroid, as the paper initialises.
+        single = (counts == 1).repeat_interleave(counts)
+        bary[single] = 1.0 / 3.0
+        tri = v_template[self.faces[face_ids]]  # [N,3,3]
+        points = (bary.unsqueeze(-1) * tri).sum(-2)
+        R, w, M = triangle_frames(v_template, self.faces[face_ids])
+        means = ((points - M).unsqueeze(-2) @ R).squeeze(-2) / w.clamp_min(1e-12).unsqueeze(-1)
+        # k Gaussians share a triangle: each covers ~1/k of its area.
+        log_scales = (-0.5 * torch.log(counts.float())).repeat_interleave(counts).unsqueeze(-1).expand(-1, 3)
+        return face_ids, means, log_scales.contiguous()
+
+    def _initial_colors(self, init_colors, face_ids, num_faces):
+        n = face_ids.shape[0]
+        if init_colors is None:
+            return torch.tensor(self.config.init_color, dtype=torch.float32).expand(n, 3).clone()
+        c = torch.as_tensor(init_colors, dtype=torch.float32)
+        if c.shape == (3,):
+            return c.expand(n, 3).clone()
+        if c.shape == (num_faces, 3):
+            return c[face_ids].clone()
+        raise UserError(f"init_colors must be [3] or [F={num_faces},3] (per face), got {tuple(c.shape)}")
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def max_sh_degree(self) -> int:
+        return self.config.sh_degree
+
+    def gaussian_parameters(self) -> dict[str, nn.Parameter]:
+        """The per-Gaussian parameters by name (what density control resizes)."""
+        return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
+
+    def increase_sh_degree(self) -> None:
+        """Activate one more SH band (3DGS does this every 1000 iterations), up to the stored degree."""
+        if int(self.active_sh_degree) < self.config.sh_degree:
+            self.active_sh_degree += 1
+
+    def set_frequency_alpha(self, alpha: float) -> None:
+        """Coarse-to-fine encoding window position (0..num_freqs); see rectifier.window_alpha."""
+        if self.rectifier is not None:
+            self.rectifier.set_frequency_alpha(alpha)
+
+    # ------------------------------------------------------------------ posing
+    def local_scales(self) -> torch.Tensor:
+        """exp(log_scale) [N,3]: scales in units of the parent triangle's w."""
+        return torch.exp(self.log_scales)
+
+    def posed(self, vertices: torch.Tensor):
+        """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3]."""
+        if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
+            raise ValueError(
+                f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
+            )
+        vertices = vertices.to(self.means.dtype)
+        # Frames for the faces in use only (binding faces; far fewer than N after densification).
+        R, w, M = triangle_frames(vertices, self.faces[self.binding_faces])
+        q = rotmat_to_quat(R)
+        slot = self._face_slot()
+        R, w, M, q = R[slot], w[slot], M[slot], q[slot]
+        mu_star = w.unsqueeze(-1) * (R @ self.means.unsqueeze(-1)).squeeze(-1) + M
+        r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
+        r_star = quat_multiply(q, r)
+        s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
+        return mu_star, r_star, s_star
+
+    def _face_slot(self) -> torch.Tensor:
+        """Index of every Gaussian's face in ``binding_faces`` [N]."""
+        dev = self.face_ids.device
+        lookup = torch.full((self.faces.shape[0],), -1, dtype=torch.long, device=dev)
+        lookup[self.binding_faces] = torch.arange(self.binding_faces.shape[0], device=dev)
+        slot = lookup[self.face_ids]
+        if bool((slot < 0).any()):
+            raise ValueError("some Gaussians are attached to faces outside binding_faces")
+        return slot
+
+    def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
+        """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
+        pose input; may be None only without a rectifier)."""
+        mu, r, s = self.posed(vertices)
+        offsets = None
+        if self.rectifier is not None:
+            if body_pose is None:
+                raise ValueError("this avatar has a rectifier: forward needs body_pose [69]")
+            body_pose = torch.as_tensor(body_pose, dtype=mu.dtype, device=mu.device).reshape(-1)
+            if body_pose.numel() != POSE_DIM:
+                raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
+            d_mu, d_s, d_r = self.rectifier(mu, body_pose)
+            mu = mu + d_mu
+            dq = d_r + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=d_r.dtype, device=d_r.device)
+            dq = dq / torch.linalg.vector_norm(dq, dim=-1, keepdim=True).clamp_min(1e-12)
+            r = quat_multiply(r, dq)
+            s = (s + d_s).clamp_min(self.config.min_scale)
+            offsets = (d_mu, d_s, d_r)
+        deg = int(self.active_sh_degree)
+        k = (deg + 1) ** 2
+        sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, self.sh_rest[:, : k - 1]), dim=1)
+        return GaussianSet(
+            means=mu,
+            quats=r,
+            scales=s,
+            opacities=torch.sigmoid(self.opacity_logits),
+            sh=sh,
+            sh_degree=deg,
+            offsets=offsets,
+            face_ids=self.face_ids,
+        )
+
+    @torch.no_grad()
+    def world_gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
+        """Export-ready world-space Gaussians: rectifier on, evaluation mode, no autograd, all
+        stored SH bands."""
+        was_training = self.training
+        self.eval()
+        try:
+            out = self.forward(vertices, body_pose)
+        finally:
+            self.train(was_training)
+        out.sh = torch.cat((self.sh_dc, self.sh_rest), dim=1).detach()
+        out.sh_degree = self.config.sh_degree
+        return out
+
+    # ------------------------------------------------------------------ resizing (checkpoints)
+    def resize_(self, n: int) -> None:
+        """Replace every per-Gaussian tensor with an uninitialised one of ``n`` rows (for loading a
+        densified checkpoint). Optimisers built before this hold stale parameters: rebuild them."""
+        for name in GAUSSIAN_PARAMS:
+            old = getattr(self, name)
+            setattr(self, name, nn.Parameter(old.new_empty((n,) + tuple(old.shape[1:]))))
+        self.face_ids = self.face_ids.new_zeros(n)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Like nn.Module's, but first resizes the per-Gaussian tensors to the stored count."""
+        if "means" in state_dict and state_dict["means"].shape[0] != self.num_gaussians:
+            self.resize_(state_dict["means"].shape[0])
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)

@@ -1,0 +1,326 @@
+"""Geometry, mesh-embedded Gaussians and the rectifier (SPEC §2)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from rmavatar.avatar import (
+    SH_C0,
+    Avatar,
+    AvatarConfig,
+    Rectifier,
+    area_counts,
+    positional_encoding,
+    quat_multiply,
+    quat_to_rotmat,
+    rotmat_to_quat,
+    triangle_frames,
+    window_alpha,
+)
+from rmavatar.utils import UserError
+
+
+def sphere():
+    m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
+    v = torch.tensor(m.vertices, dtype=torch.float32)
+    # Stretch it so triangles differ in size and shape.
+    v = v * torch.tensor([1.0, 2.0, 0.7])
+    return v, torch.tensor(m.faces, dtype=torch.long)
+
+
+def random_rotation(gen, dtype=torch.float64):
+    q = torch.randn(4, generator=gen, dtype=dtype)
+    return quat_to_rotmat(q / q.norm())
+
+
+def randomise(avatar, gen):
+    """Give the local parameters non-trivial values."""
+    with torch.no_grad():
+        for p in avatar.gaussian_parameters().values():
+            p.copy_(torch.randn(p.shape, generator=gen, dtype=p.dtype) * 0.5)
+
+
+def frames_reference(v, f):
+    """Independent float64 numpy version of the frame formulas."""
+    v = np.asarray(v, np.float64)
+    R, W, M = [], [], []
+    for a, b, c in np.asarray(f):
+        e1, e2 = v[b] - v[a], v[c] - v[a]
+        a0 = e1 / np.linalg.norm(e1)
+        n = np.cross(a0, e2)
+        a1 = n / np.linalg.norm(n)
+        a2 = np.cross(a0, a1)
+        R.append(np.stack([a0, a1, a2], 1))
+        W.append((np.linalg.norm(e1) + abs(a2 @ e2)) / 2)
+        M.append((v[a] + v[b] + v[c]) / 3)
+    return np.array(R), np.array(W), np.array(M)
+
+
+# ---------------------------------------------------------------- geometry
+def test_frames_orthonormal_and_match_reference():
+    v, f = sphere()
+    vb = torch.stack([v, v * 1.3 + 0.1])
+    R, w, M = triangle_frames(vb, f)
+    assert R.shape == (2, f.shape[0], 3, 3) and w.shape == (2, f.shape[0]) and M.shape == (2, f.shape[0], 3)
+    eye = torch.eye(3).expand_as(R)
+    assert torch.allclose(R.transpose(-1, -2) @ R, eye, atol=1e-5)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(2, f.shape[0]), atol=1e-5)
+    Rr, Wr, Mr = frames_reference(v, f)
+    np.testing.assert_allclose(R[0].numpy(), Rr, atol=1e-5)
+    np.testing.assert_allclose(w[0].numpy(), Wr, rtol=1e-5)
+    np.testing.assert_allclose(M[0].numpy(), Mr, atol=1e-6)
+    np.testing.assert_allclose(w[1].numpy(), 1.3 * Wr, rtol=1e-5)
+    # a0 along the first edge, a1 the normal: both orthogonal to the in-plane edge / normal.
+    e1 = v[f[:, 1]] - v[f[:, 0]]
+    assert torch.allclose(R[0, :, :, 0], e1 / e1.norm(dim=-1, keepdim=True), atol=1e-6)
+
+
+def test_frames_of_a_known_triangle():
+    v = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0.5, 1, 0]])
+    R, w, M = triangle_frames(v, torch.tensor([[0, 1, 2]]))
+    # a0 = x, a1 = x cross (0.5,1,0) = +z, a2 = a0 x a1 = -y; w = (2 + |-1|)/2.
+    assert torch.allclose(R[0], torch.tensor([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), atol=1e-6)
+    assert torch.isclose(w[0], torch.tensor(1.5))
+    assert torch.allclose(M[0], torch.tensor([2.5 / 3, 1 / 3, 0]))
+
+
+def test_degenerate_triangles_stay_finite():
+    v = torch.tensor([[0.0, 0, 0], [0, 0, 0], [1, 0, 0], [2, 0, 0]], requires_grad=True)
+    f = torch.tensor([[0, 1, 2], [0, 2, 3], [1, 1, 1]])  # zero edge, collinear, a point
+    R, w, M = triangle_frames(v, f)
+    q = rotmat_to_quat(R)
+    assert torch.isfinite(R).all() and torch.isfinite(w).all() and torch.isfinite(q).all()
+    (R.sum() + w.sum() + q.sum()).backward()
+    assert torch.isfinite(v.grad).all()
+
+
+def test_quaternion_round_trip_and_product():
+    gen = torch.Generator().manual_seed(1)
+    q = torch.randn(500, 4, generator=gen, dtype=torch.float64)
+    # Include near-180-degree rotations (w ~ 0), where naive formulas break.
+    q[:50, 0] = 1e-9
+    q = q / q.norm(dim=-1, keepdim=True)
+    R = quat_to_rotmat(q)
+    assert torch.allclose(R.transpose(-1, -2) @ R, torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-12)
+    q2 = rotmat_to_quat(R)
+    # q and -q are the same rotation.
+    assert torch.allclose(torch.minimum((q2 - q).abs().amax(-1), (q2 + q).abs().amax(-1)),
+                          torch.zeros(500, dtype=torch.float64), atol=1e-9)
+    a, b = q[:250], q[250:]
+    assert torch.allclose(quat_to_rotmat(quat_multiply(a, b)), quat_to_rotmat(a) @ quat_to_rotmat(b), atol=1e-12)
+
+
+# ---------------------------------------------------------------- embedding
+def test_init_values_and_centroid():
+    v, f = sphere()
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False))
+    assert av.num_gaussians == f.shape[0]
+    assert torch.equal(av.face_ids, torch.arange(f.shape[0]))
+    g = av(v)
+    assert torch.allclose(g.means, v[f].mean(1), atol=1e-6)
+    assert torch.allclose(g.opacities, torch.full((f.shape[0],), 0.1))
+    assert torch.allclose(0.5 + SH_C0 * g.sh[:, 0], torch.full((f.shape[0], 3), 0.5))
+    assert g.sh.shape == (f.shape[0], 1, 3) and g.sh_degree == 0 and g.offsets is None
+    _, w, _ = triangle_frames(v, f)
+    assert torch.allclose(g.scales, w.unsqueeze(-1).expand(-1, 3), rtol=1e-6)
+    R, _, _ = triangle_frames(v, f)
+    assert torch.allclose(quat_to_rotmat(g.quats), R, atol=1e-5)
+
+
+def test_gaussians_move_rigidly_with_a_rigid_mesh():
+    v, f = sphere()
+    gen = torch.Generator().manual_seed(2)
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False)).double()
+    randomise(av, gen)
+    v = v.double()
+    g0 = av(v)
+    for _ in range(3):
+        Q = random_rotation(gen)
+        t = torch.randn(3, generator=gen, dtype=torch.float64)
+        c = float(torch.rand(1, generator=gen)) * 2 + 0.2
+        g1 = av(c * v @ Q.T + t)
+        assert torch.allclose(g1.means, c * g0.means @ Q.T + t, atol=1e-10)
+        assert torch.allclose(quat_to_rotmat(g1.quats), Q @ quat_to_rotmat(g0.quats), atol=1e-10)
+        assert torch.allclose(g1.scales / g0.scales, torch.full_like(g0.scales, c), rtol=1e-10)
+
+
+def test_each_gaussian_follows_its_own_triangle_under_any_deformation():
+    # Disconnected triangles, each moved by its own random similarity transform (an arbitrary
+    # "pose"): every Gaussian must move exactly like its parent triangle.
+    gen = torch.Generator().manual_seed(3)
+    nf = 40
+    v = torch.randn(nf * 3, 3, generator=gen, dtype=torch.float64)
+    f = torch.arange(nf * 3).reshape(nf, 3)
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False, placement="area", num_gaussians=100)).double()
+    randomise(av, gen)
+    g0 = av(v)
+    Q = torch.stack([random_rotation(gen) for _ in range(nf)])
+    t = torch.randn(nf, 3, generator=gen, dtype=torch.float64)
+    c = torch.rand(nf, generator=gen, dtype=torch.float64) + 0.5
+    v1 = (c[:, None, None] * (v.reshape(nf, 3, 3) @ Q.transpose(-1, -2)) + t[:, None]).reshape(-1, 3)
+    g1 = av(v1)
+    fid = av.face_ids
+    expect = c[fid, None] * (Q[fid] @ g0.means.unsqueeze(-1)).squeeze(-1) + t[fid]
+    assert torch.allclose(g1.means, expect, atol=1e-10)
+    assert torch.allclose(quat_to_rotmat(g1.quats), Q[fid] @ quat_to_rotmat(g0.quats), atol=1e-10)
+    assert torch.allclose(g1.scales, c[fid, None] * g0.scales, rtol=1e-10)
+
+
+def test_area_placement():
+    v, f = sphere()
+    counts = area_counts(torch.tensor([1.0, 1.0, 8.0, 0.0]), 14)
+    assert counts.tolist() == [2, 2, 9, 1]
+    with pytest.raises(UserError):
+        area_counts(torch.ones(5), 4)
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False, placement="area", num_gaussians=500))
+    assert av.num_gaussians == 500
+    per_face = torch.bincount(av.face_ids, minlength=f.shape[0])
+    assert per_face.min() >= 1
+    # Positions lie inside their triangles: in the plane, barycentric coordinates in [0, 1].
+    g = av(v)
+    tri = v[f[av.face_ids]].double()
+    p = g.means.double()
+    n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    assert ((p - tri[:, 0]) * n).sum(-1).abs().max() < 1e-5 * n.norm(dim=-1).max()
+    A = torch.stack((tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], n), -1)
+    bc = torch.linalg.solve(A, (p - tri[:, 0]).unsqueeze(-1)).squeeze(-1)
+    assert (bc[:, :2] >= -1e-5).all() and (bc[:, :2].sum(-1) <= 1 + 1e-5).all()
+    # Bigger triangles got more Gaussians.
+    tri_all = v[f]
+    area = 0.5 * torch.linalg.cross(tri_all[:, 1] - tri_all[:, 0], tri_all[:, 2] - tri_all[:, 0], dim=-1).norm(dim=-1)
+    order = torch.argsort(area)
+    assert per_face[order[-10:]].float().mean() > per_face[order[:10]].float().mean()
+
+
+def test_initial_colors_and_errors():
+    v, f = sphere()
+    cols = torch.rand(f.shape[0], 3)
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False), init_colors=cols)
+    assert torch.allclose(0.5 + SH_C0 * av(v).sh[:, 0], cols, atol=1e-6)
+    with pytest.raises(UserError):
+        Avatar(f, None, v, init_colors=torch.rand(7, 3))
+    with pytest.raises(UserError):
+        Avatar(f, None, v, AvatarConfig(placement="area"))
+    with pytest.raises(ValueError):
+        av(v[:-1])
+    av2 = Avatar(f, None, v)
+    with pytest.raises(ValueError):
+        av2(v, None)
+    with pytest.raises(ValueError):
+        av2(v, torch.zeros(72))
+
+
+# ---------------------------------------------------------------- rectifier
+def test_positional_encoding_values():
+    x = torch.tensor([[0.3, -1.2, 2.0]], dtype=torch.float64)
+    g = positional_encoding(x, 6)
+    assert g.shape == (1, 36)
+    for k in range(6):
+        for d in range(3):
+            assert math.isclose(float(g[0, 3 * k + d]), math.sin(2**k * float(x[0, d])), abs_tol=1e-12)
+            assert math.isclose(float(g[0, 18 + 3 * k + d]), math.cos(2**k * float(x[0, d])), abs_tol=1e-12)
+    assert window_alpha(0, 10, 20, 6) == 0.0 and window_alpha(15, 10, 20, 6) == 3.0 and window_alpha(99, 10, 20, 6) == 6.0
+
+
+def test_rectifier_shapes_and_fast_path_matches_plain_mlp():
+    r = Rectifier().double()
+    assert r.in_dim == 105
+    assert r.layer_widths == [(105, 128), (128, 128), (164, 128), (128, 128), (128, 10)]
+    assert not any(isinstance(m, torch.nn.Dropout) for m in r.modules())
+    gen = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        r.l5.weight.normal_(0, 0.1, generator=gen)
+    mu = torch.randn(300, 3, generator=gen, dtype=torch.float64)
+    pose = torch.randn(69, generator=gen, dtype=torch.float64)
+    for alpha in (6.0, 2.5):
+        r.set_frequency_alpha(alpha)
+        fast, ref = r(mu, pose), r.reference_forward(mu, pose)
+        for a, b in zip(fast, ref):
+            assert torch.allclose(a, b, atol=1e-12)
+    assert [t.shape[-1] for t in fast] == [3, 3, 4]
+    r.set_frequency_alpha(0.0)
+    # A closed window removes the position: every Gaussian gets the same offsets.
+    d_mu = r(mu, pose)[0]
+    assert torch.allclose(d_mu, d_mu[:1].expand_as(d_mu), atol=1e-12)
+    with pytest.raises(ValueError):
+        r(mu, torch.zeros(72, dtype=torch.float64))
+
+
+def test_rectifier_starts_as_identity_and_is_deterministic():
+    v, f = sphere()
+    gen = torch.Generator().manual_seed(5)
+    torch.manual_seed(0)
+    av = Avatar(f, None, v)
+    randomise(av, gen)
+    pose = torch.randn(69, generator=gen) * 0.5
+    g = av(v, pose)
+    mu, r, s = av.posed(v)
+    assert torch.allclose(g.means, mu, atol=1e-3 * 0.3)
+    assert torch.allclose(g.scales, s.clamp_min(1e-6), atol=1e-3 * 0.3)
+    assert torch.allclose(quat_to_rotmat(g.quats), quat_to_rotmat(r), atol=1e-3)
+    assert all(o.abs().max() < 1e-3 for o in g.offsets)
+    av.eval()
+    with torch.no_grad():
+        a, b = av(v, pose), av(v, pose)
+    assert torch.equal(a.means, b.means) and torch.equal(a.quats, b.quats) and torch.equal(a.scales, b.scales)
+    w = av.world_gaussians(v, pose)
+    assert torch.equal(w.means, a.means) and not w.means.requires_grad
+    assert w.sh.shape == (f.shape[0], 16, 3) and w.sh_degree == 3
+
+
+def test_rectified_attributes_follow_the_paper():
+    v, f = sphere()
+    gen = torch.Generator().manual_seed(6)
+    av = Avatar(f, None, v).double()
+    randomise(av, gen)
+    with torch.no_grad():
+        av.rectifier.l5.weight.normal_(0, 0.05, generator=gen)
+        av.rectifier.l5.bias.normal_(0, 0.05, generator=gen)
+    v = v.double()
+    pose = torch.randn(69, generator=gen, dtype=torch.float64)
+    g = av(v, pose)
+    mu, r, s = av.posed(v)
+    d_mu, d_s, d_r = av.rectifier.reference_forward(mu, pose)
+    assert torch.allclose(g.means, mu + d_mu, atol=1e-12)
+    assert torch.allclose(g.scales, (s + d_s).clamp_min(1e-6), atol=1e-12)
+    dq = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64) + d_r
+    assert torch.allclose(quat_to_rotmat(g.quats), quat_to_rotmat(r) @ quat_to_rotmat(dq), atol=1e-12)
+
+
+def test_gradients_reach_every_parameter():
+    v, f = sphere()
+    gen = torch.Generator().manual_seed(7)
+    av = Avatar(f, None, v)
+    randomise(av, gen)
+    av.active_sh_degree.fill_(3)
+    g = av(v, torch.randn(69, generator=gen))
+    loss = (g.means.square().sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.square().sum())
+    loss = loss + sum(o.square().sum() for o in g.offsets)
+    loss.backward()
+    for name, p in av.named_parameters():
+        assert p.grad is not None and p.grad.abs().max() > 0, name
+
+
+def test_sh_degree_grows():
+    v, f = sphere()
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False, sh_degree=2))
+    assert av(v).sh.shape[1] == 1
+    av.increase_sh_degree()
+    assert av(v).sh.shape[1] == 4 and av(v).sh_degree == 1
+    for _ in range(5):
+        av.increase_sh_degree()
+    assert av(v).sh.shape[1] == 9 and av(v).sh_degree == 2
+
+
+def test_state_dict_round_trip_with_a_different_count():
+    v, f = sphere()
+    a = Avatar(f, None, v, AvatarConfig(placement="area", num_gaussians=333))
+    a.set_frequency_alpha(2.0)
+    b = Avatar(f, None, v)
+    b.load_state_dict(a.state_dict())
+    assert b.num_gaussians == 333 and float(b.rectifier.freq_alpha) == 2.0
+    pose = torch.randn(69)
+    assert torch.equal(a(v, pose).means, b(v, pose).means)
