@@ -340,8 +340,8 @@ def make_zju(root, num_frames, w=8, h=6, D=None, n_cams=2):
     return Ks, Rs, Ts
 
 
-def add_zju_frame(root, i, w=8, h=6, n_cams=2, image=None):
-    for c in range(n_cams):
+def add_zju_frame(root, i, w=8, h=6, n_cams=2, image=None, cams=None):
+    for c in range(n_cams) if cams is None else cams:
         img = np.full((h, w, 3), 200, np.uint8) if image is None else image
         p = root / f"Camera_B{c + 1}" / f"{i:06d}.jpg"
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -367,7 +367,7 @@ def test_zju_paper_split_camera_and_params(tmp_path):
     last_train, last_test = ZJU_SPLITS["377"]
     Ks, Rs, Ts = make_zju(root, last_test)
     for i in list(range(0, last_train, 4)) + list(range(last_train, last_test)):
-        add_zju_frame(root, i)
+        add_zju_frame(root, i, cams=[1])  # only the camera used
     ds = load_dataset(f"{root}?camera=1", body=j0_of)
     assert ds.kind == "zju" and ds.gender == "neutral"
     assert {s: ds.num_frames(s) for s in ds.splits} == {"train": 114, "test": 161}
@@ -390,7 +390,7 @@ def test_zju_paper_split_camera_and_params(tmp_path):
     expect[:, :4] = 1
     expect[:3] = 1
     np.testing.assert_array_equal(f.mask, expect)
-    only_cihp = load_dataset(f"zju:{root}", body=j0_of, mask="cihp").frame("test", 0)
+    only_cihp = load_dataset(f"zju:{root}?camera=1", body=j0_of, mask="cihp").frame("test", 0)
     np.testing.assert_array_equal(only_cihp.mask[:, 0], [1, 1, 1, 0, 0, 0])
 
 
@@ -431,7 +431,7 @@ def test_zju_bad_input(tmp_path):
     (root / "mask").mkdir()
     with pytest.raises(UserError, match=r"frame 0 has no image: .*Camera_B1/000000.jpg"):
         load_dataset(root, body=j0_of)
-    for i in list(range(0, 456, 4)) + list(range(456, 617)):
+    for i in (0, 4, 8):  # frames are checked in order: the errors below come before frame 12
         add_zju_frame(root, i)
     (root / "mask" / "Camera_B1" / "000004.png").unlink()
     (root / "mask_cihp" / "Camera_B1" / "000004.png").unlink()
@@ -450,3 +450,44 @@ def test_zju_bad_input(tmp_path):
     np.save(root / "annots.npy", annots, allow_pickle=True)
     with pytest.raises(UserError, match=r"annots.npy: cams is missing \['T'\]"):
         load_dataset(root, body=j0_of)
+
+
+# --- rmavatar inspect ------------------------------------------------------------------------------
+
+def test_inspect_all_kinds(tmp_path, capsys):
+    import json
+
+    from rmavatar.cli import main
+
+    nat = tmp_path / "nat"
+    _, _, _, params = make_native(nat, per_frame=False)
+    ps = tmp_path / "female-4-casual"
+    make_peoplesnapshot(ps, {"train": [0, 4], "val": [335], "test": [335, 339]})  # not the full table
+    zju = tmp_path / "my_subject"
+    make_zju(zju, 10)
+    for i in (0, 4, 8):
+        add_zju_frame(zju, i)
+
+    out = tmp_path / "nat.json"
+    assert main(["inspect", str(nat), "--json", str(out), "--size", "4"]) == 0
+    s = json.loads(out.read_text())
+    assert s["kind"] == "native" and s["image_size"] == [4, 3] and s["source_size"] == [8, 6]
+    assert {k: v["frames"] for k, v in s["splits"].items()} == {"train": 3, "test": 2, "novel_pose": 1}
+    assert s["camera"]["fx"] == 5.0 and s["camera"]["cx"] == 2.0 and s["camera"]["distinct_cameras"] == 1
+    np.testing.assert_allclose(s["poses"]["train"]["transl"]["max"], params["transl"][[0, 2, 4]].max(0), atol=1e-4)
+    assert "novel_pose" in capsys.readouterr().out
+
+    # the standard female-4-casual split needs frames this fixture lacks: a clear error, exit code 2
+    assert main(["inspect", str(ps)]) == 2
+    assert "image_0008.png does not exist" in capsys.readouterr().err
+
+    # ZJU needs a body for J0; the CLI's --body takes a spec, so check the summary through the API
+    from rmavatar.data import load_dataset
+    from rmavatar.data.inspect_cli import summarize
+
+    with pytest.warns(UserWarning, match="no standard split"):
+        s = summarize(load_dataset(f"zju:{zju}", body=j0_of))
+    assert {k: v["frames"] for k, v in s["splits"].items()} == {"train": 3}
+    assert s["camera"]["position"] == pytest.approx((-np.asarray([[0.0], [-0.2], [3.0]])[:, 0]).tolist())
+    assert main(["inspect", str(nat), "--body", "anny"]) == 2
+    assert "ZJU-MoCap data only" in capsys.readouterr().err
