@@ -15,6 +15,7 @@ from rmavatar.utils import UserError
 
 # name -> (module, one-line help). Add a row when a command lands.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "body": ("rmavatar.body.cli", "look at body models (Anny, SMPL) posed by motion files: body show"),
     "inspect": ("rmavatar.data.inspect_cli", "summarise a dataset: kind, frames per split, image size, camera, pose ranges"),
     "train": ("rmavatar.train.cli", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
 }

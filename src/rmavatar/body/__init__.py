@@ -1,0 +1,43 @@
+"""Body models driven by SMPL-format parameters: user-supplied SMPL files and the free Anny body.
+
+``load_body_model("anny" | "anny:PRESET" | "smpl:PATH", gender=None) -> BodyModel``; see
+:class:`rmavatar.body.base.BodyModel` for the interface and ``docs/body.md`` for the user guide.
+"""
+
+from __future__ import annotations
+
+from rmavatar.body.base import SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, BodyOutput
+from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
+from rmavatar.body.motion import Motion, load_motion
+from rmavatar.utils import UserError
+
+__all__ = [
+    "BodyModel", "BodyOutput", "Motion", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "axis_angle_to_matrix",
+    "global_rotations", "lbs", "load_body_model", "load_motion",
+]  # fmt: skip
+
+_GENDERS = ("neutral", "male", "female")
+
+
+def load_body_model(spec: str, gender: str | None = None) -> BodyModel:
+    """Build a body from a spec string (the CLI's ``--body``).
+
+    - ``"anny"``: the Anny body; the preset follows ``gender`` (``male``/``female``, else ``neutral``).
+    - ``"anny:PRESET"``: a named Anny phenotype (``neutral``, ``male``, ``female``, ``child``).
+    - ``"smpl:PATH"``: an SMPL ``.pkl``/``.npz`` file, or a folder holding ``SMPL_{NEUTRAL,MALE,FEMALE}``
+      files (``gender`` picks one; neutral when None).
+    """
+    if gender is not None and gender not in _GENDERS:
+        raise UserError(f"gender must be one of {', '.join(_GENDERS)} or None, got {gender!r}")
+    kind, _, arg = spec.partition(":")
+    if kind == "anny":
+        from rmavatar.body.anny import AnnyBody
+
+        return AnnyBody(arg or (gender if gender in ("male", "female") else "neutral"))
+    if kind == "smpl":
+        if not arg:
+            raise UserError("--body smpl needs a path: smpl:PATH (an SMPL .pkl/.npz file or a folder)")
+        from rmavatar.body.smpl import SmplBody
+
+        return SmplBody.from_path(arg, gender)
+    raise UserError(f"unknown body {spec!r}: use 'anny', 'anny:PRESET' or 'smpl:PATH'")

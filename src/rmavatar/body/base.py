@@ -1,0 +1,110 @@
+"""The body-model interface every body (SMPL, Anny) implements, and input checks they share."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from rmavatar.utils import UserError
+
+NUM_SMPL_JOINTS = 24
+
+# SMPL's kinematic tree (parent of each of the 24 joints); it is the same in every SMPL file.
+SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
+
+SMPL_JOINT_NAMES = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_hand", "right_hand",
+)  # fmt: skip
+
+
+@dataclass
+class BodyOutput:
+    """A posed body: ``vertices [B,V,3]`` and the 24 SMPL(-equivalent) ``joints [B,24,3]`` (float32)."""
+
+    vertices: torch.Tensor
+    joints: torch.Tensor
+
+
+class BodyModel(torch.nn.Module):
+    """A posable body mesh driven by SMPL-format parameters.
+
+    Attributes every body has: ``faces`` LongTensor [F,3], ``binding_faces`` LongTensor [Fb] (faces that
+    may carry Gaussians), ``v_template`` [V,3] (canonical rest vertices: what ``forward`` gives for zero
+    pose and translation with default shape), ``num_betas``, ``spec`` (identifies the body for checkpoint
+    compatibility).
+
+    Output convention: SMPL's (y up, facing +z, metres) with SMPL's translation semantics:
+    ``vertices = R(global_orient) (v - J0) + J0 + transl`` for the rigid root part, J0 the rest pelvis.
+    """
+
+    spec: str
+    num_betas: int
+    faces: torch.Tensor
+    binding_faces: torch.Tensor
+    v_template: torch.Tensor
+
+    def forward(
+        self,
+        betas: torch.Tensor | None,
+        global_orient: torch.Tensor,
+        body_pose: torch.Tensor,
+        transl: torch.Tensor | None = None,
+    ) -> BodyOutput:  # pragma: no cover - implemented by subclasses
+        raise NotImplementedError
+
+
+def check_pose_inputs(
+    betas: torch.Tensor | None,
+    global_orient: torch.Tensor,
+    body_pose: torch.Tensor,
+    transl: torch.Tensor | None,
+    num_betas: int,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Check shapes and values of SMPL-format parameters; return them as ``dtype`` tensors.
+
+    Raises UserError naming the argument and the problem (wrong shape, NaN/inf).
+    """
+    global_orient = _as_tensor(global_orient, "global_orient", dtype, device)
+    body_pose = _as_tensor(body_pose, "body_pose", dtype, device)
+    if global_orient.ndim != 2 or global_orient.shape[1] != 3:
+        raise UserError(f"global_orient must have shape [B, 3] (axis-angle), got {list(global_orient.shape)}")
+    B = global_orient.shape[0]
+    if body_pose.ndim != 2 or body_pose.shape[1] != 69:
+        hint = ""
+        if body_pose.ndim == 2 and body_pose.shape[1] == 72:
+            hint = " (that is 24 joints: split off the first 3 values as global_orient)"
+        raise UserError(
+            f"body_pose must have shape [B, 69] (23 joints x 3 axis-angle values), got "
+            f"{list(body_pose.shape)}{hint}"
+        )
+    if body_pose.shape[0] != B:
+        raise UserError(f"body_pose has batch {body_pose.shape[0]} but global_orient has batch {B}")
+    if transl is None:
+        transl = torch.zeros(B, 3, dtype=dtype, device=device)
+    transl = _as_tensor(transl, "transl", dtype, device)
+    if transl.shape != (B, 3):
+        raise UserError(f"transl must have shape [{B}, 3], got {list(transl.shape)}")
+    if betas is not None:
+        betas = _as_tensor(betas, "betas", dtype, device)
+        if betas.ndim == 1:
+            betas = betas[None]
+        if betas.ndim != 2 or betas.shape[0] not in (1, B) or betas.shape[1] > num_betas:
+            raise UserError(f"betas must have shape [{B}, <= {num_betas}], got {list(betas.shape)}")
+    for name, value in (("global_orient", global_orient), ("body_pose", body_pose), ("transl", transl),
+                        ("betas", betas)):  # fmt: skip
+        if value is not None and not bool(torch.isfinite(value).all()):
+            raise UserError(f"{name} contains NaN or infinite values")
+    return betas, global_orient, body_pose, transl
+
+
+def _as_tensor(value, name: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    try:
+        return torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise UserError(f"{name} is not a numeric array: {exc}") from exc
