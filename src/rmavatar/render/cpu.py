@@ -45,7 +45,8 @@ class _Composite(torch.autograd.Function):
         ctx.t_final = t_final
         ctx.n_last = n_last
         ctx.device = means2d.device
-        dtype = colors.dtype
+        ctx.dtypes = [t.dtype for t in (means2d, conics, colors, opacities, background)]
+        dtype = means2d.dtype
         image_t = torch.from_numpy(image).to(means2d.device, dtype)
         alpha_t = torch.from_numpy(1.0 - t_final).to(means2d.device, dtype)[..., None]
         return image_t, alpha_t
@@ -59,15 +60,8 @@ class _Composite(torch.autograd.Function):
         )
         n = ctx.arrays[0].shape[0]
         per_g = torch.from_numpy(kernels.sum_per_gaussian(grads, b.ids, n))
-        dev, dtype = ctx.device, v_image.dtype
-        return (
-            per_g[:, 0:2].to(dev, dtype),
-            per_g[:, 2:5].to(dev, dtype),
-            per_g[:, 5:8].to(dev, dtype),
-            per_g[:, 8].to(dev, dtype),
-            torch.from_numpy(v_bg).to(dev, dtype),
-            None,
-        )
+        grads = (per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5:8], per_g[:, 8], torch.from_numpy(v_bg))
+        return tuple(g.to(ctx.device, d) for g, d in zip(grads, ctx.dtypes)) + (None,)
 
 
 def composite(

@@ -1,0 +1,260 @@
+"""The CPU rasterizer against the dense float64 reference, edge cases and input checks."""
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from rmavatar.render import RasterInputError, rasterize
+from rmavatar.render.project import sh_basis
+from rmavatar.render.reference import reference_rasterize
+
+F64 = torch.float64
+TOL = 1e-5
+GRAD_ARGS = ("means", "quats", "scales", "opacities", "colors", "background")
+
+
+def _camera(width, height, angle=0.3):
+    c, s = math.cos(angle), math.sin(angle)
+    viewmat = torch.eye(4, dtype=F64)
+    viewmat[:3, :3] = torch.tensor([[c, 0, -s], [0, 1, 0], [s, 0, c]], dtype=F64)
+    viewmat[:3, 3] = torch.tensor([0.1, -0.05, 3.0], dtype=F64)
+    K = torch.tensor([[0.9 * width, 0, width / 2 - 0.3], [0, 0.95 * width, height / 2 + 0.7], [0, 0, 1]], dtype=F64)
+    return viewmat, K
+
+
+def _scene(n, seed, sh_degree=None, width=40, height=32, opaque=False):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=F64) * 0.5
+    quats = torch.randn(n, 4, generator=g, dtype=F64) * 2  # deliberately not normalised
+    # Anisotropic: one axis up to 30x thinner than another.
+    scales = torch.rand(n, 3, generator=g, dtype=F64) * 0.25 + 0.008
+    opacities = torch.rand(n, generator=g, dtype=F64)
+    if opaque:  # push many to the 0.999 clamp so the transmittance stop is reached
+        opacities = torch.where(opacities > 0.4, torch.ones_like(opacities), opacities * 0.5 + 0.5)
+    if sh_degree is None:
+        colors = torch.rand(n, 3, generator=g, dtype=F64)
+    else:
+        colors = torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g, dtype=F64) * 0.4
+    viewmat, K = _camera(width, height)
+    background = torch.rand(3, generator=g, dtype=F64)
+    return dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                background=background), viewmat, K, width, height
+
+
+def _run(fn, params, viewmat, K, width, height, sh_degree, weights, **kw):
+    p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    out = fn(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], viewmat, K, width, height,
+             background=p["background"], sh_degree=sh_degree, **kw)
+    image, alpha, extra = out
+    means2d = extra["means2d"] if isinstance(extra, dict) else extra
+    if fn is reference_rasterize:
+        means2d.retain_grad()
+    ((image * weights[0]).sum() + (alpha * weights[1]).sum()).backward()
+    grads = {k: p[k].grad for k in GRAD_ARGS}
+    grads["means2d"] = means2d.grad
+    return image.detach(), alpha.detach(), grads
+
+
+def _compare(params, viewmat, K, width, height, sh_degree=None):
+    g = torch.Generator().manual_seed(123)
+    weights = (torch.randn(height, width, 3, generator=g, dtype=F64), torch.randn(height, width, 1, generator=g, dtype=F64))
+    img, alpha, grads = _run(rasterize, params, viewmat, K, width, height, sh_degree, weights, backend="cpu")
+    img_r, alpha_r, grads_r = _run(reference_rasterize, params, viewmat, K, width, height, sh_degree, weights)
+    assert img.shape == (height, width, 3) and alpha.shape == (height, width, 1)
+    torch.testing.assert_close(img, img_r, atol=TOL, rtol=0)
+    torch.testing.assert_close(alpha, alpha_r, atol=TOL, rtol=0)
+    for k in grads_r:
+        assert torch.isfinite(grads[k]).all(), k
+        torch.testing.assert_close(grads[k], grads_r[k], atol=TOL, rtol=0, msg=lambda m: f"d/d{k}: {m}")
+    return img, alpha, grads
+
+
+@pytest.mark.parametrize(
+    "n,seed,sh_degree,size,opaque",
+    [
+        (1, 0, None, (40, 32), False),
+        (25, 1, None, (40, 32), False),
+        (120, 2, None, (37, 23), True),
+        (80, 3, 0, (40, 32), False),
+        (150, 4, 3, (40, 32), True),
+        (60, 5, 1, (33, 41), False),
+        (90, 6, 2, (40, 32), True),
+    ],
+)
+def test_matches_dense_reference(n, seed, sh_degree, size, opaque):
+    params, viewmat, K, w, h = _scene(n, seed, sh_degree, *size, opaque=opaque)
+    img, alpha, grads = _compare(params, viewmat, K, w, h, sh_degree)
+    assert alpha.max() > 0.1  # the scene is actually on screen
+    assert grads["means"].abs().max() > 1e-3
+    if opaque:
+        # The 0.999 clamp and the transmittance stop are exercised: many layers, yet T stays > 1e-4.
+        assert alpha.max() > 0.999 and alpha.max() < 1 - 1e-4
+
+
+def test_overlapping_equal_depths_keep_index_order():
+    params, viewmat, K, w, h = _scene(12, 7)
+    params["means"][:, 2] = 0.2  # identical depths: ties resolved by index in both implementations
+    _compare(params, viewmat, K, w, h)
+
+
+def test_zero_gaussians():
+    params, viewmat, K, w, h = _scene(0, 0)
+    image, alpha, info = rasterize(params["means"], params["quats"], params["scales"], params["opacities"],
+                                   params["colors"], viewmat, K, w, h, background=params["background"])
+    assert torch.equal(image, params["background"].expand(h, w, 3))
+    assert torch.equal(alpha, torch.zeros(h, w, 1, dtype=F64))
+    assert info["means2d"].shape == (0, 2) and info["radii"].shape == (0,) and info["visible"].shape == (0,)
+
+
+@pytest.mark.parametrize("where", ["behind", "offscreen"])
+def test_invisible_gaussians_give_background_and_zero_grads(where):
+    params, viewmat, K, w, h = _scene(20, 8)
+    if where == "behind":
+        params["means"][:, 2] = -3.5 - params["means"][:, 2].abs()  # camera z = world z + 3 < 0
+    else:
+        params["means"][:, 0] += 40.0  # far to the side, in front of the camera
+        params["scales"] = params["scales"] * 0.1
+    p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    image, alpha, info = rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"],
+                                   viewmat, K, w, h, background=p["background"])
+    assert not info["visible"].any() and (info["radii"] == 0).all()
+    torch.testing.assert_close(image.detach(), params["background"].expand(h, w, 3), atol=0, rtol=0)
+    assert (alpha == 0).all()
+    image.sum().backward()
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(p[k].grad, torch.zeros_like(p[k])), k
+    torch.testing.assert_close(p["background"].grad, torch.full((3,), float(w * h), dtype=F64))
+
+
+def test_zero_scales_render_as_dilated_dots():
+    params, viewmat, K, w, h = _scene(15, 9)
+    params["scales"] = torch.zeros_like(params["scales"])
+    img, alpha, grads = _compare(params, viewmat, K, w, h)
+    assert alpha.max() > 0.01  # the 0.3 px^2 low-pass keeps degenerate Gaussians visible
+
+
+def test_one_gaussian_covers_the_image():
+    params, viewmat, K, w, h = _scene(1, 10)
+    params["means"] = torch.tensor([[0.0, 0.0, 0.5]], dtype=F64)
+    params["scales"] = torch.tensor([[20.0, 15.0, 10.0]], dtype=F64)
+    params["opacities"] = torch.tensor([0.7], dtype=F64)
+    img, alpha, grads = _compare(params, viewmat, K, w, h)
+    assert alpha.min() > 0.6 and alpha.max() <= 0.7 + 1e-12  # every pixel covered, nearly flat
+
+
+def test_means2d_grad_and_info():
+    params, viewmat, K, w, h = _scene(30, 11)
+    p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    image, alpha, info = rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"],
+                                   viewmat, K, w, h)
+    assert set(info) >= {"means2d", "radii", "visible", "depths"}
+    assert info["radii"].dtype == torch.int32 and info["radii"].shape == (30,)
+    assert torch.equal(info["visible"], info["radii"] > 0)
+    depth_expected = (p["means"] @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2]
+    torch.testing.assert_close(info["depths"].detach(), depth_expected.detach())
+    image.sum().backward()
+    g = info["means2d"].grad
+    assert g is not None and g.shape == (30, 2) and g[info["visible"]].abs().sum() > 0
+
+
+def test_float32_inputs():
+    params, viewmat, K, w, h = _scene(40, 12)
+    p32 = {k: v.float() for k, v in params.items()}
+    img, alpha, _ = rasterize(p32["means"], p32["quats"], p32["scales"], p32["opacities"], p32["colors"],
+                              viewmat.float(), K.float(), w, h, background=p32["background"])
+    ref, ref_a, _ = reference_rasterize(*(params[k] for k in ("means", "quats", "scales", "opacities", "colors")),
+                                        viewmat, K, w, h, background=params["background"])
+    assert img.dtype == torch.float32
+    torch.testing.assert_close(img.double(), ref, atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("arg", ["means", "quats", "scales", "opacities", "colors", "background"])
+def test_nan_input_is_a_clear_error(arg):
+    params, viewmat, K, w, h = _scene(5, 13)
+    params[arg] = params[arg].clone()
+    params[arg].view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match=arg):
+        rasterize(params["means"], params["quats"], params["scales"], params["opacities"], params["colors"],
+                  viewmat, K, w, h, background=params["background"])
+
+
+def test_bad_inputs_are_clear_errors():
+    params, viewmat, K, w, h = _scene(5, 14)
+    args = [params[k] for k in ("means", "quats", "scales", "opacities", "colors")]
+    with pytest.raises(RasterInputError, match="viewmat"):
+        rasterize(*args, viewmat.clone().fill_(float("inf")), K, w, h)
+    with pytest.raises(RasterInputError, match=r"quats must have shape \[5,4\]"):
+        rasterize(args[0], args[1][:, :3], *args[2:], viewmat, K, w, h)
+    with pytest.raises(RasterInputError, match="width"):
+        rasterize(*args, viewmat, K, 0, h)
+    with pytest.raises(RasterInputError, match="zero-length"):
+        rasterize(args[0], torch.zeros(5, 4, dtype=F64), *args[2:], viewmat, K, w, h)
+    with pytest.raises(RasterInputError, match="sh_degree"):
+        rasterize(*args[:4], torch.zeros(5, 4, 3, dtype=F64), viewmat, K, w, h, sh_degree=2)
+    with pytest.raises(RasterInputError, match="backend"):
+        rasterize(*args, viewmat, K, w, h, backend="opengl")
+
+
+def test_sh_basis_matches_scipy_real_harmonics():
+    """gsplat's basis: real SH with the Condon-Shortley phase, m = -l..l (sin terms first)."""
+    scipy_special = pytest.importorskip("scipy.special")
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(50, 3, generator=g, dtype=F64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    ours = sh_basis(3, d).numpy()
+    theta = np.arccos(d[:, 2].numpy())  # polar
+    phi = np.arctan2(d[:, 1].numpy(), d[:, 0].numpy())
+    col = 0
+    for l in range(4):
+        for m in range(-l, l + 1):
+            y = scipy_special.sph_harm_y(l, abs(m), theta, phi)
+            want = y.real if m == 0 else math.sqrt(2) * (y.imag if m < 0 else y.real)
+            np.testing.assert_allclose(ours[:, col], want, atol=1e-12, err_msg=f"l={l} m={m}")
+            col += 1
+
+
+def test_gsplat_backend_without_gsplat_is_a_clear_error():
+    pytest.importorskip("torch")
+    try:
+        import gsplat  # noqa: F401
+        pytest.skip("gsplat is installed")
+    except ImportError:
+        pass
+    from rmavatar.utils import UserError
+
+    params, viewmat, K, w, h = _scene(3, 15)
+    args = [params[k] for k in ("means", "quats", "scales", "opacities", "colors")]
+    with pytest.raises(UserError, match="gsplat|CUDA"):
+        rasterize(*args, viewmat, K, w, h, backend="gsplat")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device and gsplat")
+def test_gsplat_matches_cpu():
+    pytest.importorskip("gsplat")
+    params, viewmat, K, w, h = _scene(150, 16, sh_degree=3, width=64, height=48)
+    g = torch.Generator().manual_seed(1)
+    weights = (torch.randn(h, w, 3, generator=g, dtype=F64), torch.randn(h, w, 1, generator=g, dtype=F64))
+    cpu = _run(rasterize, {k: v.float() for k, v in params.items()}, viewmat.float(), K.float(), w, h, 3,
+               tuple(x.float() for x in weights), backend="cpu")
+    cuda = _run(rasterize, {k: v.float().cuda() for k, v in params.items()}, viewmat.float().cuda(),
+                K.float().cuda(), w, h, 3, tuple(x.float().cuda() for x in weights), backend="gsplat")
+    torch.testing.assert_close(cuda[0].cpu(), cpu[0], atol=1e-4, rtol=0)
+    torch.testing.assert_close(cuda[1].cpu(), cpu[1], atol=1e-4, rtol=0)
+    for k in cpu[2]:
+        torch.testing.assert_close(cuda[2][k].cpu(), cpu[2][k], atol=2e-3, rtol=1e-3, msg=lambda m: f"d/d{k}: {m}")
+
+
+def test_numba_cache_goes_to_rmavatar_cache(tmp_path):
+    env = dict(os.environ, RMAVATAR_CACHE=str(tmp_path))
+    env.pop("NUMBA_CACHE_DIR", None)
+    code = "import rmavatar.render.kernels, os; print(os.environ['NUMBA_CACHE_DIR'])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(tmp_path / "numba")
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "mine")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(tmp_path / "mine")
