@@ -491,3 +491,64 @@ def test_inspect_all_kinds(tmp_path, capsys):
     assert s["camera"]["position"] == pytest.approx((-np.asarray([[0.0], [-0.2], [3.0]])[:, 0]).tolist())
     assert main(["inspect", str(nat), "--body", "anny"]) == 2
     assert "ZJU-MoCap data only" in capsys.readouterr().err
+
+
+def test_rest_pelvis_provider_uses_the_body_joints_and_smpl_betas():
+    import torch
+
+    from rmavatar.data.zju import rest_pelvis_provider
+
+    class FakeBody(torch.nn.Module):
+        """Rest pelvis moves with betas[0]; records what forward received."""
+
+        def __init__(self, spec, num_betas):
+            super().__init__()
+            self.spec, self.num_betas, self.v_template = spec, num_betas, torch.zeros(4, 3)
+            self.seen = None
+
+        def forward(self, betas, global_orient, body_pose, transl):
+            self.seen = (betas, global_orient, body_pose, transl)
+            n = global_orient.shape[0]
+            j = torch.zeros(n, 24, 3)
+            j[:, 0] = torch.tensor([0.0, -0.2, 0.03])
+            if betas is not None:
+                j[:, 0, 1] += betas[:, 0]
+            return type("Out", (), {"joints": j, "vertices": torch.zeros(n, 4, 3)})()
+
+    betas = np.zeros((2, 10), np.float32)
+    betas[1, 0] = 0.5
+    smpl = FakeBody("smpl:/x", 300)
+    np.testing.assert_allclose(rest_pelvis_provider(smpl)(betas), [[0, -0.2, 0.03], [0, 0.3, 0.03]], atol=1e-6)
+    assert smpl.seen[0].shape == (2, 300) and float(smpl.seen[0][1, 0]) == 0.5
+    assert all(float(t.abs().max()) == 0 for t in smpl.seen[1:])  # rest pose, no translation
+    anny = FakeBody("anny:default", 0)
+    np.testing.assert_allclose(rest_pelvis_provider(anny)(betas), [[0, -0.2, 0.03]] * 2, atol=1e-6)
+    assert anny.seen[0] is None  # Anny's shape space is not SMPL's: its default shape
+
+
+def test_mask_file_variants(tmp_path):
+    from rmavatar.data.io import read_binary_mask, read_mask
+
+    np.save(tmp_path / "b.npy", np.array([[True, False]]))
+    np.save(tmp_path / "u01.npy", np.array([[1, 0]], np.uint8))
+    np.save(tmp_path / "u255.npy", np.array([[255, 51]], np.uint8))
+    np.save(tmp_path / "f.npy", np.array([[0.25, 1.0]], np.float32))
+    np.save(tmp_path / "bad.npy", np.array([[1.5, 0.0]], np.float32))
+    save_png(tmp_path / "grey.png", np.array([[255, 64]], np.uint8))
+    rgba = np.zeros((1, 2, 4), np.uint8)
+    rgba[..., :3] = 255
+    rgba[0, 0, 3] = 255  # a cut-out: the alpha is the mask
+    save_png(tmp_path / "cut.png", rgba)
+    save_png(tmp_path / "label.png", np.array([[0, 1]], np.uint8))
+    np.testing.assert_allclose(read_mask(tmp_path / "b.npy"), [[1, 0]])
+    np.testing.assert_allclose(read_mask(tmp_path / "u01.npy"), [[1, 0]])
+    np.testing.assert_allclose(read_mask(tmp_path / "u255.npy"), [[1, 0.2]])
+    np.testing.assert_allclose(read_mask(tmp_path / "f.npy"), [[0.25, 1]])
+    np.testing.assert_allclose(read_mask(tmp_path / "grey.png"), [[1, 64 / 255]], atol=1e-6)
+    np.testing.assert_allclose(read_mask(tmp_path / "cut.png"), [[1, 0]])
+    np.testing.assert_allclose(read_binary_mask(tmp_path / "label.png"), [[0, 1]])
+    with pytest.raises(UserError, match=r"bad.npy: float masks must lie in \[0,1\]"):
+        read_mask(tmp_path / "bad.npy")
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(UserError, match=r"cannot read mask .*broken.png"):
+        read_mask(tmp_path / "broken.png")
