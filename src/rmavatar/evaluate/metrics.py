@@ -1,0 +1,163 @@
+"""Image metrics: PSNR, SSIM (11x11 Gaussian window) and LPIPS (AlexNet v0.1).
+
+All three take float RGB images ``[H,W,3]`` or batches ``[B,H,W,3]`` with values in [0, 1], as torch
+tensors or numpy arrays. With torch inputs they return tensors (a 0-d tensor for one image, ``[B]`` for
+a batch) and are differentiable, so training uses ``1 - ssim(render, gt)`` and ``lpips(render, gt)`` as
+losses. With numpy inputs they return a Python float (one image) or a float64 array ``[B]``.
+
+``check_range=True`` (the default) rejects values outside [0, 1]; a training loop whose renders may
+overshoot 1 (SH colours are not clamped from above) passes ``check_range=False``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from rmavatar.utils import UserError
+
+# Values this far outside [0, 1] are treated as rounding noise, anything beyond is an error.
+_RANGE_TOL = 1e-4
+
+# SSIM constants (Wang et al. 2004), data range 1: the setting every peer reports with.
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = 5  # 11x11 window; scikit-image's int(3.5 * sigma + 0.5) for truncate=3.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+
+
+def _prepare(name: str, a: Any, b: Any, check_range: bool, min_side: int = 1):
+    """Validate two image arguments and return them as torch ``[B,H,W,3]`` plus output flags.
+
+    Returns ``(a, b, batched, as_numpy)``; numpy inputs become float64 tensors so that numpy callers get
+    full-precision numbers, torch inputs keep their dtype and device.
+    """
+    as_numpy = not (torch.is_tensor(a) or torch.is_tensor(b))
+    tensors = []
+    for arg, x in (("a", a), ("b", b)):
+        if torch.is_tensor(x):
+            t = x
+        elif isinstance(x, np.ndarray):
+            t = torch.from_numpy(np.ascontiguousarray(x))
+        else:
+            raise UserError(f"{name}: argument {arg} must be a torch tensor or numpy array, got {type(x).__name__}")
+        if not t.is_floating_point():
+            hint = " (divide uint8 images by 255)" if t.dtype == torch.uint8 else ""
+            raise UserError(f"{name}: argument {arg} must hold float values in [0, 1], got dtype {t.dtype}{hint}")
+        if t.ndim not in (3, 4) or t.shape[-1] != 3:
+            raise UserError(
+                f"{name}: argument {arg} must be an RGB image [H,W,3] or a batch [B,H,W,3], "
+                f"got shape {tuple(t.shape)}"
+            )
+        tensors.append(t)
+    ta, tb = tensors
+    if ta.shape != tb.shape:
+        raise UserError(f"{name}: a and b must have the same shape, got {tuple(ta.shape)} and {tuple(tb.shape)}")
+    h, w = ta.shape[-3], ta.shape[-2]
+    if h < min_side or w < min_side:
+        raise UserError(f"{name}: images must be at least {min_side}x{min_side} pixels, got {h}x{w}")
+    if as_numpy:
+        ta, tb = ta.double(), tb.double()
+    else:
+        # Mixed inputs: follow whichever one is a tensor (its device and dtype).
+        ref = ta if torch.is_tensor(a) else tb
+        dtype = ref.dtype if ref.dtype in (torch.float32, torch.float64) else torch.float32
+        ta, tb = ta.to(ref.device, dtype), tb.to(ref.device, dtype)
+    if check_range:
+        for arg, t in (("a", ta), ("b", tb)):
+            lo, hi = torch.aminmax(t.detach())
+            lo, hi = float(lo), float(hi)
+            # Written so that NaN fails too.
+            if not (lo >= -_RANGE_TOL and hi <= 1 + _RANGE_TOL):
+                raise UserError(
+                    f"{name}: argument {arg} must have values in [0, 1], found [{lo:.4g}, {hi:.4g}] "
+                    "(pass check_range=False to score unclamped renders)"
+                )
+    batched = ta.ndim == 4
+    if not batched:
+        ta, tb = ta[None], tb[None]
+    return ta, tb, batched, as_numpy
+
+
+def _finish(values: torch.Tensor, batched: bool, as_numpy: bool):
+    """``values [B]`` -> tensor/float/array as the module docstring promises."""
+    if not batched:
+        values = values[0]
+    if as_numpy:
+        out = values.detach().cpu().numpy().astype(np.float64)
+        return float(out) if not batched else out
+    return values
+
+
+def psnr(a: Any, b: Any, *, check_range: bool = True):
+    """Peak signal-to-noise ratio in dB per image: ``20 log10(1 / RMSE)`` over all pixels and channels.
+
+    Identical images give ``inf``. Batches return one value per image (average them yourself: the
+    papers average per-image PSNRs, not the PSNR of the pooled error).
+    """
+    ta, tb, batched, as_numpy = _prepare("psnr", a, b, check_range)
+    mse = (ta - tb).square().mean(dim=(1, 2, 3))
+    return _finish(-10.0 * torch.log10(mse), batched, as_numpy)
+
+
+def gaussian_window_1d(sigma: float = SSIM_SIGMA, radius: int = SSIM_RADIUS, dtype=torch.float32, device=None):
+    """Normalised 1D Gaussian taps ``[2 radius + 1]`` (scipy's ``gaussian_filter1d`` weights)."""
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def ssim(a: Any, b: Any, *, check_range: bool = True):
+    """Structural similarity with an 11x11 Gaussian window (sigma 1.5), K1 0.01, K2 0.03, data range 1.
+
+    The SSIM map is averaged over the pixels whose window lies inside the image and over the three
+    channels, which is exactly what ``skimage.metrics.structural_similarity(a, b, gaussian_weights=True,
+    sigma=1.5, use_sample_covariance=False, data_range=1, channel_axis=-1)`` reports. Images must be at
+    least 11x11. The Gaussian filter is applied separably (two 1D convolutions), so it is cheap enough to
+    be a training loss (``1 - ssim``).
+    """
+    win = 2 * SSIM_RADIUS + 1
+    ta, tb, batched, as_numpy = _prepare("ssim", a, b, check_range, min_side=win)
+    x = ta.permute(0, 3, 1, 2)  # [B,3,H,W]
+    y = tb.permute(0, 3, 1, 2)
+    # Filter the five moment maps in one grouped convolution: [B, 5*3, H, W].
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    channels = stack.shape[1]
+    g = gaussian_window_1d(dtype=stack.dtype, device=stack.device)
+    # 'valid' convolution: only windows that lie fully inside the image, the region the mean is over.
+    filt = F.conv2d(stack, g.view(1, 1, win, 1).expand(channels, 1, win, 1), groups=channels)
+    filt = F.conv2d(filt, g.view(1, 1, 1, win).expand(channels, 1, 1, win), groups=channels)
+    mu_x, mu_y, e_xx, e_yy, e_xy = filt.chunk(5, dim=1)
+    var_x = e_xx - mu_x * mu_x
+    var_y = e_yy - mu_y * mu_y
+    cov_xy = e_xy - mu_x * mu_y
+    c1 = SSIM_K1**2
+    c2 = SSIM_K2**2
+    num = (2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)
+    den = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    return _finish((num / den).mean(dim=(1, 2, 3)), batched, as_numpy)
+
+
+def lpips(a: Any, b: Any, *, check_range: bool = True, net: torch.nn.Module | None = None):
+    """LPIPS v0.1 with the AlexNet backbone; images are mapped from [0, 1] to [-1, 1] internally.
+
+    ``net`` is an :class:`rmavatar.evaluate.lpips_net.LPIPSAlex`; by default the one for the input's
+    device and dtype is loaded from the user cache (converted there on first use) and kept for reuse.
+    Images must be at least 32x32 (AlexNet's fifth layer needs that much). Lower is more similar.
+    Numpy inputs are scored in float32 (the weights' precision); float64 tensors run in float64.
+    """
+    from rmavatar.evaluate.lpips_net import MIN_SIDE, load_lpips
+
+    ta, tb, batched, as_numpy = _prepare("lpips", a, b, check_range, min_side=MIN_SIDE)
+    if as_numpy:
+        # The weights are float32 and float64 convolutions are several times slower on CPU.
+        ta, tb = ta.float(), tb.float()
+    if net is None:
+        net = load_lpips(ta.device, ta.dtype)
+    x = ta.permute(0, 3, 1, 2) * 2 - 1
+    y = tb.permute(0, 3, 1, 2) * 2 - 1
+    return _finish(net(x, y), batched, as_numpy)
+
