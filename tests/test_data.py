@@ -552,3 +552,28 @@ def test_mask_file_variants(tmp_path):
     (tmp_path / "broken.png").write_bytes(b"\x89PNG broken")
     with pytest.raises(UserError, match=r"cannot read mask .*broken.png"):
         read_mask(tmp_path / "broken.png")
+
+
+def test_zju_conversion_with_a_real_body_places_the_skinned_mesh(tmp_path):
+    """End to end with LBS: ZJU's R(Rh) body(poses) + Th equals the body driven by the loaded params."""
+    import torch
+
+    from rmavatar.body import load_body_model
+
+    body = load_body_model("anny")
+    root = tmp_path / "my_subject"
+    make_zju(root, 1, n_cams=1)
+    add_zju_frame(root, 0, n_cams=1)
+    poses = np.concatenate([[0.3, -0.5, 0.2], RNG.normal(size=69) * 0.25])
+    Rh, Th = np.array([0.2, 1.9, -0.4]), np.array([0.3, 1.1, -0.5])
+    np.save(root / "new_params" / "0.npy", {"poses": poses[None], "Rh": Rh[None], "Th": Th[None],
+                                             "shapes": np.zeros((1, 10))}, allow_pickle=True)
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float32))[None]  # noqa: E731
+    with torch.no_grad():
+        smpl_space = body(None, t(poses[:3]), t(poses[3:]), t(np.zeros(3))).vertices[0].double().numpy()
+    zju_world = smpl_space @ rodrigues(Rh).T + Th
+    with pytest.warns(UserWarning, match="no standard split"):
+        f = load_dataset(root, body=body).frame("train", 0)
+    with torch.no_grad():
+        ours = body(None, t(f.global_orient), t(f.body_pose), t(f.transl)).vertices[0].double().numpy()
+    np.testing.assert_allclose(ours, zju_world, atol=2e-5)
