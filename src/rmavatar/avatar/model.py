@@ -8,6 +8,7 @@ pose-dependent offsets: mu' = mu* + d_mu, r' = r* (x) normalize(1 + d_r), s' = s
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -15,7 +16,7 @@ import torch
 from torch import nn
 
 from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_frames
-from rmavatar.avatar.rectifier import POSE_DIM, Rectifier
+from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.utils import UserError
 
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
@@ -41,6 +42,13 @@ class AvatarConfig:
     # The rectified scale s* + d_s is clamped to this (metres): d_s is additive and may overshoot.
     min_scale: float = 1e-6
     seed: int = 0  # area placement sampling
+    # Coarse-to-fine encoding window (HumanNeRF): closed until c2f_start, fully open at c2f_end,
+    # both as fractions of the run (set_progress). Our choice; the paper gives no values.
+    coarse_to_fine: bool = True
+    c2f_start: float = 0.0
+    c2f_end: float = 0.5
+    # SH bands switch on one at a time every sh_every_frac of the run (3DGS: 1000 of 50,000 iterations).
+    sh_every_frac: float = 0.02
 
     def __post_init__(self):
         if not 0 <= self.sh_degree <= 3:
@@ -51,6 +59,9 @@ class AvatarConfig:
             raise UserError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
         if self.num_freqs < 1:
             raise UserError(f"num_freqs must be >= 1, got {self.num_freqs}")
+        self.init_color = tuple(float(c) for c in self.init_color)
+        if len(self.init_color) != 3:
+            raise UserError(f"init_color must have 3 values, got {self.init_color}")
 
 
 @dataclass
@@ -60,6 +71,8 @@ class GaussianSet:
     means [N,3], quats [N,4] (wxyz, unit), scales [N,3] (linear), opacities [N] in [0,1],
     sh [N,K,3] with K = (sh_degree+1)^2 (colour = 0.5 + SH evaluation, the gsplat convention),
     offsets = (d_mu [N,3], d_s [N,3], d_r [N,4]) of the rectifier, or None without one.
+    local_means [N,3] / local_log_scales [N,3] are the avatar's face-local parameters (for the
+    position and scaling regularisers); face_ids [N] the parent faces.
     """
 
     means: torch.Tensor
@@ -70,6 +83,8 @@ class GaussianSet:
     sh_degree: int
     offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     face_ids: torch.Tensor | None = field(default=None, repr=False)
+    local_means: torch.Tensor | None = field(default=None, repr=False)
+    local_log_scales: torch.Tensor | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -105,7 +120,8 @@ class Avatar(nn.Module):
     Parameters (per Gaussian, names in GAUSSIAN_PARAMS; all in the parent triangle's frame):
     means [N,3] (units of w), quats [N,4] wxyz (unnormalised), log_scales [N,3], opacity_logits [N],
     sh_dc [N,1,3], sh_rest [N,K-1,3]. Buffers: face_ids [N] (index into ``faces``), faces [F,3],
-    binding_faces [Fb], rest_face_scale [F] (w of every face on ``v_template``),
+    binding_faces [Fb], rest_face_scale [F] (w of every face on ``v_template``), rest_extent (half the
+    rest mesh's bounding-box diagonal),
     active_sh_degree (grows during training like 3DGS).
     """
 
@@ -136,6 +152,8 @@ class Avatar(nn.Module):
         self.register_buffer("binding_faces", binding_faces)
         _, w_rest, _ = triangle_frames(v_template, faces)
         self.register_buffer("rest_face_scale", w_rest)
+        # Half the rest mesh's bounding-box diagonal: the "scene size" density control measures against.
+        self.register_buffer("rest_extent", 0.5 * torch.linalg.vector_norm(v_template.amax(0) - v_template.amin(0)))
         self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
 
         face_ids, means, log_scales = self._initial_layout(v_template, config)
@@ -157,6 +175,34 @@ class Avatar(nn.Module):
     def from_body(cls, body, config: AvatarConfig | None = None, init_colors=None) -> "Avatar":
         """Build from a ``rmavatar.body.BodyModel`` (its faces, binding_faces, v_template)."""
         return cls(body.faces, getattr(body, "binding_faces", None), body.v_template, config, init_colors)
+
+    def checkpoint_state(self) -> dict:
+        """Everything needed to rebuild this avatar: {"config": dict, "state_dict": tensors}."""
+        return {"config": dataclasses.asdict(self.config), "state_dict": self.state_dict()}
+
+    @classmethod
+    def from_state(cls, body, state: dict, where: str = "checkpoint") -> "Avatar":
+        """Rebuild from ``checkpoint_state()`` output for ``body`` (its mesh must match)."""
+        try:
+            config = AvatarConfig(**state["config"])
+            sd = state["state_dict"]
+            faces = sd["faces"]
+        except (KeyError, TypeError) as exc:
+            raise UserError(f"{where}: not an avatar state ({exc})") from None
+        body_faces = torch.as_tensor(body.faces, dtype=torch.long)
+        if faces.shape != body_faces.shape or not torch.equal(faces.cpu(), body_faces.cpu()):
+            raise UserError(
+                f"{where}: the avatar was trained on a different body mesh ({faces.shape[0]} faces) "
+                f"than the body model given ({body_faces.shape[0]} faces)"
+            )
+        avatar = cls(body.faces, getattr(body, "binding_faces", None), body.v_template,
+                     dataclasses.replace(config, placement="face"))
+        avatar.config = config
+        try:
+            avatar.load_state_dict(sd)
+        except RuntimeError as exc:
+            raise UserError(f"{where}: the avatar state does not fit this body model: {exc}") from None
+        return avatar
 
     def _initial_layout(self, v_template, config):
         bf = self.binding_faces
@@ -218,6 +264,17 @@ class Avatar(nn.Module):
         """Coarse-to-fine encoding window position (0..num_freqs); see rectifier.window_alpha."""
         if self.rectifier is not None:
             self.rectifier.set_frequency_alpha(alpha)
+
+    def set_progress(self, iteration: int, total: int) -> None:
+        """Put the training-time schedules at ``iteration`` of ``total``: the active SH degree and
+        the coarse-to-fine encoding window. Absolute (not incremental), so resuming is exact."""
+        every = max(1, round(self.config.sh_every_frac * total))
+        self.active_sh_degree.fill_(min(self.config.sh_degree, iteration // every))
+        if self.config.coarse_to_fine:
+            start, end = self.config.c2f_start * total, self.config.c2f_end * total
+            self.set_frequency_alpha(window_alpha(iteration, round(start), round(end), self.config.num_freqs))
+        else:
+            self.set_frequency_alpha(self.config.num_freqs)
 
     # ------------------------------------------------------------------ posing
     def local_scales(self) -> torch.Tensor:
@@ -282,6 +339,8 @@ class Avatar(nn.Module):
             sh_degree=deg,
             offsets=offsets,
             face_ids=self.face_ids,
+            local_means=self.means,
+            local_log_scales=self.log_scales,
         )
 
     @torch.no_grad()

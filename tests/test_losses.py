@@ -1,0 +1,110 @@
+"""The training loss and its regularisers, against hand-computed values."""
+
+import math
+
+import pytest
+import torch
+import trimesh
+
+from rmavatar.avatar import Avatar, AvatarConfig, GaussianSet
+from rmavatar.train.losses import LossWeights, offset_loss, position_loss, scaling_loss, total_loss
+
+
+def test_position_loss_by_hand():
+    mu = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0, 3, 4], [0.6, 0.0, -0.8]])
+    # norms 0, 2, 5, 1 -> excess over 1: 0, 1, 4, 0
+    assert math.isclose(float(position_loss(mu)), 5 / 4, rel_tol=1e-6)
+    assert math.isclose(float(position_loss(mu, eps=2.0)), 3 / 4, rel_tol=1e-6)
+
+
+def test_scaling_loss_by_hand():
+    s = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.6, 0.2], [0.9, 1.0, 0.6]])
+    # excess over 0.6: (0,0,0) -> 0; (0.4,0,0) -> 0.4; (0.3,0.4,0) -> 0.5
+    assert math.isclose(float(scaling_loss(torch.log(s))), 0.9 / 3, rel_tol=1e-5)
+
+
+def test_offset_loss_by_hand():
+    d_mu = torch.full((5, 3), 2.0)
+    d_s = torch.tensor([[3.0, 0, 0]]).expand(5, 3)
+    d_r = torch.full((5, 4), 0.5)
+    assert math.isclose(float(offset_loss(d_mu, d_s, d_r)), 4.0 + 3.0 + 0.25, rel_tol=1e-6)
+
+
+def _fake_set(n=4):
+    means = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0, 3, 4], [0, 0, 0]], requires_grad=True)
+    log_s = torch.log(torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.6, 0.2], [0.9, 1.0, 0.6], [0.6, 0.6, 0.6]]))
+    log_s.requires_grad_(True)
+    d_mu = torch.full((n, 3), 0.1, requires_grad=True)
+    d_s = torch.zeros(n, 3, requires_grad=True)
+    d_r = torch.full((n, 4), 0.2, requires_grad=True)
+    g = GaussianSet(
+        means=torch.zeros(n, 3), quats=torch.zeros(n, 4), scales=torch.ones(n, 3), opacities=torch.ones(n),
+        sh=torch.zeros(n, 1, 3), sh_degree=0, offsets=(d_mu, d_s, d_r), local_means=means, local_log_scales=log_s,
+    )
+    return g
+
+
+def test_total_loss_weights_and_switches():
+    render = torch.full((16, 16, 3), 0.25)
+    target = torch.full((16, 16, 3), 0.75)
+    g = _fake_set()
+    ssim_fn = lambda a, b: torch.tensor(0.7)  # noqa: E731
+    lpips_fn = lambda a, b: torch.tensor(0.1)  # noqa: E731
+    pos = (0 + 1 + 4 + 0) / 4
+    scal = 0.9 / 4
+    off = 0.01 + 0.0 + 0.04
+    loss, terms = total_loss(render, target, g, LossWeights(), lpips_fn, ssim_fn)
+    expect = 1.5 * 0.5 + 0.2 * 0.3 + 0.05 * 0.1 + 0.01 * pos + 1.0 * scal + 1.0 * off
+    assert math.isclose(float(loss.detach()), expect, rel_tol=1e-5)
+    assert set(terms) == {"l1", "ssim", "lpips", "pos", "scaling", "offset"}
+    assert math.isclose(float(terms["pos"]), pos, rel_tol=1e-6)
+    loss.backward()
+    assert all(t.grad is not None for t in (g.local_means, g.local_log_scales, *g.offsets[::2]))
+
+    def never(a, b):
+        raise AssertionError("a term with weight 0 must not be computed")
+
+    loss, terms = total_loss(render, target, g, LossWeights(no_offset=True, no_scaling=True, lpips=0.0), never, ssim_fn)
+    assert set(terms) == {"l1", "ssim", "pos"}
+    assert math.isclose(float(loss.detach()), 1.5 * 0.5 + 0.2 * 0.3 + 0.01 * pos, rel_tol=1e-5)
+    # Any object with the weight names works (the trainer's LossConfig), offsets None is fine.
+    g.offsets = None
+
+    class Cfg:
+        rgb, ssim, lpips, pos, scaling, offset = 1.0, 0.0, 0.0, 0.0, 2.0, 5.0
+
+    loss, terms = total_loss(render, target, g, Cfg(), never, never)
+    assert set(terms) == {"l1", "scaling"}
+    assert math.isclose(float(loss.detach()), 0.5 + 2 * scal, rel_tol=1e-5)
+    with pytest.raises(ValueError):
+        total_loss(render[:8], target, g, Cfg())
+
+
+def test_total_loss_default_ssim_matches_metric():
+    from rmavatar.evaluate import ssim
+
+    gen = torch.Generator().manual_seed(0)
+    render = torch.rand(24, 24, 3, generator=gen)
+    target = torch.rand(24, 24, 3, generator=gen)
+    g = _fake_set()
+    w = LossWeights(rgb=0, lpips=0, pos=0, scaling=0, offset=0, ssim=1.0)
+    loss, terms = total_loss(render, target, g, w)
+    assert math.isclose(float(loss.detach()), 1 - float(ssim(render, target)), rel_tol=1e-6)
+
+
+def test_loss_gradients_reach_every_avatar_parameter():
+    m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
+    v = torch.tensor(m.vertices, dtype=torch.float32)
+    f = torch.tensor(m.faces)
+    av = Avatar(f, None, v, AvatarConfig())
+    av.active_sh_degree.fill_(3)
+    with torch.no_grad():
+        av.means.mul_(0).add_(1.5)  # beyond eps_pos
+        av.log_scales.fill_(0.3)  # beyond eps_scaling
+    g = av(v, torch.randn(69))
+    # A stand-in "render" that depends on every attribute, as the rasterizer does.
+    render = (g.means.mean() + g.quats.mean() + g.scales.mean() + g.opacities.mean() + g.sh.mean()).expand(16, 16, 3)
+    loss, _ = total_loss(render, torch.zeros(16, 16, 3), g, LossWeights(ssim=0, lpips=0))
+    loss.backward()
+    for name, p in av.named_parameters():
+        assert p.grad is not None and p.grad.abs().max() > 0, name
