@@ -17,7 +17,12 @@ from rmavatar.utils import UserError
 COMMANDS: dict[str, tuple[str, str]] = {
     "body": ("rmavatar.body.cli", "look at body models (Anny, SMPL) posed by motion files: body show"),
     "inspect": ("rmavatar.data.inspect_cli", "summarise a dataset: kind, frames per split, image size, camera, pose ranges"),
+    "animate": ("rmavatar.animate.cli", "drive a trained avatar with a motion file (AIST++, AMASS, GART) into an MP4 or PNG frames"),
+    "export": ("rmavatar.export.cli", "write a trained avatar as a standard 3DGS PLY (canonical pose or a motion frame)"),
+    "view": ("rmavatar.viewer.cli", "interactive browser viewer (viser) of an avatar, with motion playback and camera presets"),
     "train": ("rmavatar.train.cli", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
+    "bench": ("rmavatar.bench.cli", "benchmarks: bench raster (rasterizer speed and memory)"),
+    "synth": ("rmavatar.data.synth.cli", "render the synthetic clothed subject (turning in an A-pose, novel poses) into a native dataset"),
 }
 
 

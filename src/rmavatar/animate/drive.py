@@ -55,8 +55,9 @@ class Poser:
 
     @torch.no_grad()
     def gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor):
-        """The avatar's world-space GaussianSet on posed ``vertices`` [V,3], rectified for ``body_pose`` [69]."""
-        return self.avatar(vertices.to(self.device), body_pose.reshape(69).to(self.device))
+        """The avatar's world-space GaussianSet on posed ``vertices`` [V,3], rectified for ``body_pose`` [69]
+        (evaluation mode, every stored SH band)."""
+        return self.avatar.world_gaussians(vertices.to(self.device), body_pose.reshape(69).to(self.device))
 
     @torch.no_grad()
     def pose(self, seq: PoseSequence, i: int):

@@ -38,6 +38,8 @@ def check_output(out: str | os.PathLike) -> Path:
     parent = path.parent
     while folder and not parent.exists() and parent != parent.parent:
         parent = parent.parent  # a frames folder's missing parents are created
+    if parent.exists() and not parent.is_dir():
+        raise UserError(f"cannot write {out}: {parent} is not a folder")
     if not parent.is_dir():
         raise UserError(f"cannot write {out}: folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):

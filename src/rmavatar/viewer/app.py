@@ -130,3 +130,26 @@ class AvatarViewer:
     def close(self) -> None:
         self._stop.set()
         self.server.stop()
+
+
+def avatar_viewer(poser, seq=None, fps: float = 30.0, host: str = "127.0.0.1", port: int = 8080,
+                  rest: str = "tpose", verbose: bool = False) -> AvatarViewer:
+    """Start a viewer for ``poser`` (rmavatar.animate.drive.Poser) playing the PoseSequence ``seq``
+    (re-centred like ``animate``), or standing in the rest pose ``rest`` when ``seq`` is None."""
+    from rmavatar.animate.jobs import VideoOptions, frame_the_body
+    from rmavatar.animate.motion import PoseSequence, recenter_motion, rest_pose
+
+    if seq is None:
+        go, pose = rest_pose(rest)
+        seq = PoseSequence(go[None], pose[None], torch.zeros(1, 3))
+    else:
+        seq = recenter_motion(seq, poser.root_rest())
+    sample = seq.select(sorted({round(i * (len(seq) - 1) / 15) for i in range(min(len(seq), 16))}))
+    center, distance = frame_the_body(poser.vertices(sample), VideoOptions(fov_deg=40.0))
+
+    def frame_fn(i: int):
+        gs = poser.pose(seq, i)
+        return gs.means, gs.quats, gs.scales, gs.opacities, gs.sh
+
+    state = ViewerState(frame_fn, len(seq), fps, center.numpy(), distance)
+    return AvatarViewer(state, host=host, port=port, verbose=verbose)
