@@ -151,6 +151,12 @@ def test_native_write_is_atomic_and_checks_counts(tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("old")
     n = 4
+    with pytest.raises(UserError, match="refusing to replace .*not an rmavatar dataset"):
+        write_native(out, {"name": "x", "splits": {"train": [0]}}, Camera(np.eye(3), np.eye(4), 8, 6),
+                     {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
+                      "transl": np.zeros((n, 3))}, [np.zeros((6, 8, 3))] * n, [np.zeros((6, 8))] * n,
+                     progress=False)
+    (out / "meta.yaml").write_text("an older dataset")  # a dataset folder may be replaced, on success only
     params = {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
               "transl": np.zeros((n, 3))}
     cam = Camera(np.eye(3), np.eye(4), 8, 6)

@@ -145,9 +145,15 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
     global_orient [N,3], body_pose [N,69], transl [N,3] (N = the frame count). images: N arrays
     [H,W,3] (uint8, or float in [0,1]); masks: N arrays [H,W] (float in [0,1], bool, or uint8 0-255).
     Both may be iterators: frames are written as they come, so a long video streams.
+    An existing ``out_dir`` is replaced only if it is empty or a native dataset (has meta.yaml).
     Returns the path written.
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"cannot write a dataset to {out_dir}: it is a file")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "meta.yaml").is_file():
+        raise UserError(f"refusing to replace {out_dir}: it is a non-empty folder that is not an rmavatar "
+                        f"dataset (no meta.yaml); choose a new or empty folder")
     meta = _as_meta(meta)
     p = _check_params(params, "write_native")
     n = p["global_orient"].shape[0]
