@@ -1,0 +1,206 @@
+"""SMPL from .pkl (python-2 protocol, chumpy stand-ins, old scipy paths) and .npz equals body-models."""
+
+from __future__ import annotations
+
+import contextlib
+import pickle
+import sys
+import types
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+
+from rmavatar.body import load_body_model
+from rmavatar.body.base import SMPL_PARENTS
+from rmavatar.utils import UserError
+
+V, F = 6890, 13776
+
+
+def random_smpl(num_betas: int, seed: int) -> dict:
+    """A random model with SMPL's array shapes and sparsity (weights on <= 4 joints, sparse regressor)."""
+    rng = np.random.default_rng(seed)
+    parents = np.array(SMPL_PARENTS, dtype=np.int64)
+    joints = np.zeros((24, 3))
+    for j in range(1, 24):
+        joints[j] = joints[parents[j]] + rng.normal(0, 0.15, 3)
+    owner = rng.integers(0, 24, V)
+    v_template = joints[owner] + rng.normal(0, 0.05, (V, 3))
+    weights = np.zeros((V, 24))
+    rows = np.arange(V)[:, None]
+    others = np.stack([owner, np.maximum(parents[owner], 0), *rng.integers(0, 24, (2, V))], 1)  # <= 4 joints
+    weights[rows, others] = rng.random((V, 4))
+    weights /= weights.sum(1, keepdims=True)
+    J_regressor = np.zeros((24, V))
+    for j in range(24):
+        idx = rng.choice(np.nonzero(owner == j)[0], 20, replace=False)
+        w = rng.random(20)
+        J_regressor[j, idx] = w / w.sum()
+    kintree = np.stack([parents, np.arange(24)]).astype(np.uint32)
+    kintree[0, 0] = 4294967295  # as in the official files
+    return {
+        "v_template": v_template,
+        "f": rng.integers(0, V, (F, 3)).astype(np.uint32),
+        "shapedirs": rng.normal(0, 0.01, (V, 3, num_betas)),
+        "posedirs": rng.normal(0, 0.01, (V, 3, 207)),
+        "J_regressor": scipy.sparse.csc_matrix(J_regressor),
+        "weights": weights,
+        "kintree_table": kintree,
+        "bs_type": "lrotmin",
+        "bs_style": "lbs",
+    }
+
+
+@contextlib.contextmanager
+def fake_modules(classes: dict):
+    """Put stand-in classes at old module paths (e.g. chumpy.ch.Ch) while pickling."""
+    saved = {}
+    for path, cls in classes.items():
+        module_name, name = path.rsplit(".", 1)
+        parts = module_name.split(".")
+        for k in range(1, len(parts) + 1):
+            prefix = ".".join(parts[:k])
+            if prefix not in sys.modules or k == len(parts):
+                saved.setdefault(prefix, sys.modules.get(prefix))
+                sys.modules[prefix] = sys.modules.get(prefix) if k < len(parts) else types.ModuleType(prefix)
+                if sys.modules[prefix] is None:
+                    sys.modules[prefix] = types.ModuleType(prefix)
+        setattr(sys.modules[module_name], name, cls)
+        cls.__module__, cls.__qualname__ = module_name, name
+    try:
+        yield
+    finally:
+        for module_name, old in saved.items():
+            if old is None:
+                sys.modules.pop(module_name, None)
+            else:
+                sys.modules[module_name] = old
+
+
+class Ch:  # mimics chumpy.ch.Ch: pickled state holds the array under 'x'
+    def __init__(self, x):
+        self.x = x
+
+    def __getstate__(self):
+        return {"x": self.x, "_dirty_vars": set(), "_itr": None}
+
+
+class csc_matrix:  # mimics python-2-era scipy.sparse.csc.csc_matrix state
+    def __init__(self, m):
+        self.__dict__.update(data=m.data, indices=m.indices, indptr=m.indptr, _shape=m.shape, format="csc",
+                             maxprint=50)  # fmt: skip
+
+
+def save_pkl(model: dict, path) -> None:
+    chumpy_keys = ("v_template", "shapedirs", "posedirs")  # as in the official files
+    data = {k: Ch(v) if k in chumpy_keys else v for k, v in model.items()}
+    data["J_regressor"] = csc_matrix(model["J_regressor"])
+    stand_ins = {"chumpy.ch.Ch": Ch, "scipy.sparse.csc.csc_matrix": csc_matrix}
+    with fake_modules(stand_ins), open(path, "wb") as fh:
+        pickle.dump(data, fh, protocol=2)
+
+
+def save_npz(model: dict, path) -> None:
+    arrays = {k: v for k, v in model.items() if not isinstance(v, str)}
+    arrays["J_regressor"] = model["J_regressor"].toarray()
+    np.savez(path, **arrays)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("smpl")
+    for nb in (10, 300):
+        model = random_smpl(nb, seed=nb)
+        save_pkl(model, root / f"m{nb}.pkl")
+        save_npz(model, root / f"m{nb}.npz")
+    return root
+
+
+def reference(path, betas, go, bp, transl):
+    from body_models.smpl.torch import SMPL
+
+    ref = SMPL(model_path=path)
+    with torch.no_grad():
+        return ref.forward_vertices(
+            bp.double().reshape(-1, 23, 3).float(), pelvis_rotation=go, shape=betas, global_translation=transl
+        )
+
+
+@pytest.mark.parametrize("num_betas", [10, 300])
+@pytest.mark.parametrize("suffix", ["pkl", "npz"])
+def test_forward_equals_body_models(files, num_betas, suffix):
+    path = files / f"m{num_betas}.{suffix}"
+    body = load_body_model(f"smpl:{path}")
+    assert body.num_betas == num_betas and body.faces.shape == (F, 3) and body.v_template.shape == (V, 3)
+    gen = torch.Generator().manual_seed(num_betas)
+    B = 3
+    betas = 2 * torch.randn(B, num_betas, generator=gen)
+    go = torch.randn(B, 3, generator=gen)
+    bp = 0.5 * torch.randn(B, 69, generator=gen)
+    transl = torch.randn(B, 3, generator=gen)
+    with torch.no_grad():
+        ours = body(betas, go, bp, transl).vertices
+    ref = reference(path, betas, go, bp, transl)
+    err = (ours - ref).norm(dim=-1).max().item()
+    assert err < 1e-5, err
+
+
+def test_folder_and_gender(tmp_path, files):
+    model = random_smpl(10, seed=3)
+    save_pkl(model, tmp_path / "SMPL_FEMALE.pkl")
+    save_npz(random_smpl(10, seed=4), tmp_path / "SMPL_NEUTRAL.npz")
+    female = load_body_model(f"smpl:{tmp_path}", gender="female")
+    assert female.file.name == "SMPL_FEMALE.pkl"
+    assert np.allclose(female.v_template.numpy(), model["v_template"], atol=1e-6)
+    assert load_body_model(f"smpl:{tmp_path}").file.name == "SMPL_NEUTRAL.npz"
+    with pytest.raises(UserError, match="no male SMPL model"):
+        load_body_model(f"smpl:{tmp_path}", gender="male")
+
+
+class Evil:
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("echo hacked",))
+
+
+def test_bad_files(tmp_path, files):
+    with pytest.raises(UserError, match="does not exist"):
+        load_body_model(f"smpl:{tmp_path / 'nope.pkl'}")
+    evil = tmp_path / "evil.pkl"
+    evil.write_bytes(pickle.dumps({"v_template": Evil()}, protocol=2))
+    with pytest.raises(UserError, match=r"evil.pkl is not an SMPL model file: refusing to load class .*system"):
+        load_body_model(f"smpl:{evil}")
+    notmodel = tmp_path / "list.pkl"
+    notmodel.write_bytes(pickle.dumps([1, 2, 3]))
+    with pytest.raises(UserError, match="list.pkl is not an SMPL model file"):
+        load_body_model(f"smpl:{notmodel}")
+    partial = tmp_path / "partial.npz"
+    np.savez(partial, v_template=np.zeros((V, 3)))
+    with pytest.raises(UserError, match="partial.npz is not an SMPL model file: missing f"):
+        load_body_model(f"smpl:{partial}")
+    model = random_smpl(10, seed=5)
+    model["J_regressor"] = scipy.sparse.csc_matrix(np.zeros((23, V)))
+    model["kintree_table"] = model["kintree_table"][:, :23]
+    model["weights"] = model["weights"][:, :23]
+    wrong = tmp_path / "smplh_like.npz"
+    save_npz(model, wrong)
+    with pytest.raises(UserError, match="smplh_like.npz is not an SMPL model .*24 joints"):
+        load_body_model(f"smpl:{wrong}")
+
+
+def test_bad_pose_inputs(files):
+    body = load_body_model(f"smpl:{files / 'm10.npz'}")
+    z3 = torch.zeros(1, 3)
+    with pytest.raises(UserError, match=r"body_pose must have shape \[B, 69\].*24 joints"):
+        body(None, z3, torch.zeros(1, 72), z3)
+    with pytest.raises(UserError, match="global_orient must have shape"):
+        body(None, torch.zeros(1, 4), torch.zeros(1, 69), z3)
+    bad = torch.zeros(1, 69)
+    bad[0, 5] = float("nan")
+    with pytest.raises(UserError, match="body_pose contains NaN"):
+        body(None, z3, bad, z3)
+    with pytest.raises(UserError, match="betas must have shape"):
+        body(torch.zeros(1, 11), z3, torch.zeros(1, 69), z3)
