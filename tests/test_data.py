@@ -181,10 +181,10 @@ def test_native_write_is_atomic_and_checks_counts(tmp_path):
 def test_native_bad_input(tmp_path):
     with pytest.raises(UserError, match="does not exist"):
         load_dataset(tmp_path / "nope")
-    with pytest.raises(UserError, match="not a dataset"):
-        load_dataset(tmp_path)
     out = tmp_path / "nat"
     make_native(out)
+    with pytest.raises(UserError, match="not a dataset .* it holds datasets: nat"):
+        load_dataset(tmp_path)
     (out / "masks" / "00003.png").unlink()
     with pytest.raises(UserError, match=r"frame 3 has no mask: .*masks/00003.png"):
         load_dataset(out)
@@ -269,6 +269,17 @@ def test_peoplesnapshot_standard_subject(tmp_path):
     np.testing.assert_allclose(ds.frame("val", 0).betas, betas["val"][0], atol=1e-6)
     assert not np.allclose(betas["train"], betas["test"])
     np.testing.assert_array_equal(f.mask, np.repeat([[1, 1, 1, 0, 0, 0]], 4, axis=0))
+
+    # a split without its anim_nerf file takes its frames' rows of poses.npz
+    (root / "poses" / "anim_nerf_test.npz").unlink()
+    thetas = RNG.normal(size=(700, 72)).astype(np.float32)
+    transl = RNG.normal(size=(700, 3)).astype(np.float32)
+    np.savez(root / "poses.npz", betas=np.full((1, 10), 0.3), thetas=thetas, transl=transl)
+    f = load_dataset(root).frame("test", 2)
+    np.testing.assert_allclose(f.global_orient, thetas[464, :3], atol=1e-6)
+    np.testing.assert_allclose(f.body_pose, thetas[464, 3:], atol=1e-6)
+    np.testing.assert_allclose(f.transl, transl[464], atol=1e-6)
+    np.testing.assert_allclose(f.betas, 0.3, atol=1e-6)
 
 
 def test_peoplesnapshot_png_soft_masks_and_unknown_subject(tmp_path):

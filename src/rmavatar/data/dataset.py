@@ -197,10 +197,13 @@ def detect_kind(path: Path) -> str:
         return "zju"
     if (path / "cameras.npz").is_file() and ((path / "poses").is_dir() or (path / "poses.npz").is_file()):
         return "peoplesnapshot"
+    inside = sorted(p.name for p in path.iterdir() if p.is_dir() and any(
+        (p / f).is_file() for f in ("meta.yaml", "annots.npy", "cameras.npz")))
+    hint = f"; it holds datasets: {', '.join(inside[:8])} (give one of those folders)" if inside else ""
     raise UserError(
         f"{path} is not a dataset rmavatar recognises: expected meta.yaml (native format), annots.npy "
         f"(ZJU-MoCap) or cameras.npz with poses/ (PeopleSnapshot, InstantAvatar layout); "
-        f"or name the kind as KIND:PATH with KIND one of {', '.join(KINDS)}")
+        f"or name the kind as KIND:PATH with KIND one of {', '.join(KINDS)}{hint}")
 
 
 def load_dataset(spec: str | Path, size=None, *, cache_mb: float = 1024.0, **options) -> Dataset:
