@@ -1,0 +1,213 @@
+"""The synthetic clothed subject (`rmavatar synth`): the Anny body in a loose striped tunic, trousers,
+shoes, hair and a painted face, turning round in front of a static camera like PeopleSnapshot's
+subjects, rendered by a textured-mesh rasterizer independent of the Gaussian one. See docs/synth.md.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rmavatar.utils import UserError, atomic_dir
+
+PRESETS = ("neutral", "male", "female", "child")
+
+
+@dataclass
+class SynthConfig:
+    """What to make. Frame counts per split; ``turns`` full turns over the train+test frames;
+    ``novel_views`` extra cameras rendering the test poses (split ``novel_view``); ``pose_noise`` degrees
+    of tracker-like noise on the *stored* poses (the images always show the true ones); ``ss`` samples
+    per pixel side (anti-aliasing); ``distance`` metres from the camera to the person."""
+
+    size: int = 256
+    seed: int = 0
+    preset: str = "neutral"
+    train: int = 100
+    test: int = 30
+    novel_pose: int = 30
+    novel_views: int = 0
+    turns: float = 1.75
+    pose_noise: float = 0.0
+    ss: int = 3
+    distance: float = 3.6
+    fps: float = 7.5
+
+    def check(self) -> None:
+        if self.size < 16:
+            raise UserError(f"--size must be at least 16 pixels, got {self.size}")
+        if self.preset not in PRESETS:
+            raise UserError(f"--preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
+        for name in ("train", "test"):
+            if getattr(self, name) < 1:
+                raise UserError(f"--{name} must be at least 1, got {getattr(self, name)}")
+        for name in ("novel_pose", "novel_views"):
+            if getattr(self, name) < 0:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}")
+        if self.turns <= 0:
+            raise UserError(f"--turns must be positive, got {self.turns}")
+        if self.pose_noise < 0:
+            raise UserError(f"--pose-noise must be >= 0 degrees, got {self.pose_noise}")
+        if not 1 <= self.ss <= 8:
+            raise UserError(f"--ss must be between 1 and 8, got {self.ss}")
+        if self.distance < 1.5:
+            raise UserError(f"--distance must be at least 1.5 m, got {self.distance}")
+
+
+@dataclass
+class Shot:
+    """One frame to render: true SMPL parameters, camera, split."""
+
+    global_orient: np.ndarray
+    body_pose: np.ndarray
+    transl: np.ndarray
+    K: np.ndarray
+    viewmat: np.ndarray
+    split: str
+
+
+def plan(cfg: SynthConfig) -> list[Shot]:
+    """The frames in output order: train, test (the turn's contiguous tail, as in PeopleSnapshot),
+    novel_pose, then novel_view. Poses are noise-free. Deterministic for ``cfg.seed``."""
+    from rmavatar.data.synth.motion import look_at, novel_motion, turn_motion
+
+    rng = np.random.default_rng([cfg.seed, 1])
+    n_turn = cfg.train + cfg.test
+    turn = turn_motion(n_turn, cfg.turns, rng)
+    novel = novel_motion(max(cfg.novel_pose, 1), rng)
+    S = cfg.size
+    # Framing: 2.1 m of height fill 90% of the image at the person's distance (room for raised arms).
+    f = S * 0.9 * cfg.distance / 2.1
+    K = np.array([[f, 0.0, S / 2], [0.0, f, S / 2], [0.0, 0.0, 1.0]])
+    target = np.array([0.0, -0.40, 0.0])  # about the middle of the standing body
+    eye = np.array([0.0, -0.30, cfg.distance])
+    main = look_at(eye, target)
+    shots = []
+    for i in range(n_turn):
+        split = "train" if i < cfg.train else "test"
+        shots.append(Shot(turn["global_orient"][i], turn["body_pose"][i], turn["transl"][i], K, main, split))
+    for i in range(cfg.novel_pose):
+        shots.append(Shot(novel["global_orient"][i], novel["body_pose"][i], novel["transl"][i], K, main,
+                          "novel_pose"))  # fmt: skip
+    # Novel views: cameras around the person at other heights; each renders every N-th test pose.
+    for c in range(cfg.novel_views):
+        az = 2 * np.pi * (c + 1) / (cfg.novel_views + 1)
+        height = (0.9, -0.5)[c % 2]
+        pos = target + np.array([np.sin(az) * cfg.distance, height, np.cos(az) * cfg.distance])
+        vm = look_at(pos, target)
+        for i in range(cfg.train + c, n_turn, cfg.novel_views):
+            shots.append(Shot(turn["global_orient"][i], turn["body_pose"][i], turn["transl"][i], K, vm,
+                              "novel_view"))  # fmt: skip
+    return shots
+
+
+def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict:
+    """Render the subject and write a native dataset to ``out`` (atomically: a temporary folder renamed
+    at the end). Also writes ``contact_sheet.png`` and ``smpl_true.npz`` (the noise-free poses) there.
+    Returns a summary dict (frames per split, seconds)."""
+    import torch
+    from scipy.spatial.transform import Rotation
+    from tqdm import tqdm
+
+    from rmavatar.body import load_body_model
+    from rmavatar.data.native import NativeMeta, write_native
+    from rmavatar.data.synth.motion import add_pose_noise
+    from rmavatar.data.synth.render import render
+    from rmavatar.data.synth.subject import build_subject, garment_state
+
+    cfg.check()
+    start = time.time()
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "meta.yaml").is_file())):
+        raise UserError(f"{out} exists and is not an rmavatar dataset; refusing to replace it")
+    body = load_body_model(f"anny:{cfg.preset}")
+    subject = build_subject(body, cfg.seed)
+    shots = plan(cfg)
+    n = len(shots)
+    true = {k: np.stack([getattr(s, k) for s in shots]) for k in ("global_orient", "body_pose", "transl")}
+    with torch.no_grad():
+        verts = []
+        for a in range(0, n, 64):
+            b = slice(a, a + 64)
+            o = body(None, *(torch.as_tensor(true[k][b], dtype=torch.float32)
+                             for k in ("global_orient", "body_pose", "transl")))  # fmt: skip
+            verts.append(o.vertices.numpy())
+        verts = np.concatenate(verts)
+    stored = add_pose_noise(true, cfg.pose_noise, np.random.default_rng([cfg.seed, 2]))
+    params = {k: v.astype(np.float32) for k, v in stored.items()}
+    params["betas"] = np.zeros(10, dtype=np.float32)  # Anny's shape comes from the preset, not betas
+    splits: dict[str, list[int]] = {}
+    for i, s in enumerate(shots):
+        splits.setdefault(s.split, []).append(i)
+    splits["val"] = splits["test"][:1]  # PeopleSnapshot keeps one validation frame at the test start
+    pick = _sheet_picks(splits)
+    sheet: dict[int, np.ndarray] = {}
+    masks: list[np.ndarray] = []
+    bar = tqdm(total=n, desc="synth: rendering", unit="frame", disable=not progress)
+
+    def images():
+        for i, s in enumerate(shots):
+            image, mask = render(subject, verts[i], Rotation.from_rotvec(s.global_orient).as_matrix(),
+                                 garment_state(s.body_pose), s.K, s.viewmat, cfg.size, cfg.size, ss=cfg.ss)  # fmt: skip
+            masks.append(mask)
+            if i in pick:
+                sheet[i] = image
+            bar.update(1)
+            yield image
+
+    def mask_stream():
+        for _ in range(n):
+            yield masks.pop(0)
+
+    gender = cfg.preset if cfg.preset in ("male", "female") else "neutral"
+    meta = NativeMeta(
+        name=f"synth-seed{cfg.seed}", splits=splits, fps=cfg.fps, gender=gender, body=body.spec,
+        extra={"generator": "rmavatar synth", "config": asdict(cfg),
+               "test_split": "contiguous tail of the turn (as PeopleSnapshot)",
+               "novel_pose": "walking on the spot while turning, then arm raises"},
+    )  # fmt: skip
+    cameras = {"K": np.stack([s.K for s in shots]).astype(np.float32),
+               "viewmat": np.stack([s.viewmat for s in shots]).astype(np.float32)}  # fmt: skip
+    with atomic_dir(out) as tmp:
+        write_native(tmp, meta, cameras, params, images(), mask_stream(), progress=False)
+        bar.close()
+        np.savez(tmp / "smpl_true.npz", **{k: v.astype(np.float32) for k, v in true.items()})
+        write_contact_sheet(tmp / "contact_sheet.png", [(splits_of(i, shots), sheet[i]) for i in sorted(sheet)])
+    return {"frames": {k: len(v) for k, v in splits.items()}, "seconds": time.time() - start, "out": str(out)}
+
+
+def splits_of(i: int, shots: list[Shot]) -> str:
+    return f"{shots[i].split} {i}"
+
+
+def _sheet_picks(splits: dict[str, list[int]], per_split: int = 6) -> set[int]:
+    picks: set[int] = set()
+    for name in ("train", "test", "novel_pose", "novel_view"):
+        idx = splits.get(name, [])
+        if idx:
+            sel = np.linspace(0, len(idx) - 1, min(per_split, len(idx))).round().astype(int)
+            picks.update(idx[j] for j in sel)
+    return picks
+
+
+def write_contact_sheet(path: Path, tiles: list[tuple[str, np.ndarray]], per_row: int = 6) -> None:
+    """A grid of labelled frames (rows grouped by split) saved as PNG."""
+    from PIL import Image, ImageDraw
+
+    rows: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for label, img in tiles:
+        rows.setdefault(label.split()[0], []).append((label, img))
+    h, w = tiles[0][1].shape[:2]
+    pad = 14
+    lines = [group[k:k + per_row] for group in rows.values() for k in range(0, len(group), per_row)]
+    canvas = Image.new("RGB", (per_row * w, len(lines) * (h + pad)), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    for r, line in enumerate(lines):
+        for c, (label, img) in enumerate(line):
+            tile = Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8))
+            canvas.paste(tile, (c * w, r * (h + pad) + pad))
+            draw.text((c * w + 3, r * (h + pad) + 1), label, fill=(0, 0, 0))
+    canvas.save(path)
