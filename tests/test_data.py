@@ -632,3 +632,25 @@ def test_inspect_overlay_projects_the_body_onto_its_silhouette(tmp_path):
         assert dots.sum() > 100
         assert (masks[k][dots] > 0).mean() > 0.97
         assert dots[masks[k] > 0].mean() > 0.5  # and they cover the silhouette
+
+
+def test_export_native_roundtrip_from_peoplesnapshot(tmp_path):
+    from rmavatar.data import export_native
+
+    root = tmp_path / "someone"
+    make_peoplesnapshot(root, {"train": [0, 2, 4], "val": [5], "test": [5, 6]}, mask_kind="png", total=7)
+    (root / "splits.yaml").write_text("train: [0, 2, 4]\nval: [5]\ntest: [5, 6]\n")
+    src = load_dataset(root, size=3)
+    out = export_native(src, tmp_path / "native", progress=False)
+    ds = load_dataset(out)
+    assert ds.image_size == src.image_size == (3, 2)
+    # frame 5 is in val and test with each split's own betas: two native frames, not one
+    assert ds.splits == {"train": [0, 1, 2], "val": [3], "test": [4, 5]}
+    for split in src.splits:
+        for i in range(src.num_frames(split)):
+            a, b = src.frame(split, i), ds.frame(split, i)
+            np.testing.assert_allclose(b.image, a.image, atol=0.5 / 255 + 1e-6)
+            np.testing.assert_allclose(b.mask, a.mask, atol=0.5 / 255 + 1e-6)
+            np.testing.assert_allclose(b.camera.K, a.camera.K, atol=1e-6)
+            for key in ("betas", "global_orient", "body_pose", "transl"):
+                np.testing.assert_allclose(getattr(b, key), getattr(a, key), atol=1e-6)

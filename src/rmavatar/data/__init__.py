@@ -3,6 +3,6 @@ all read into the same `Frame` records (see docs/data.md)."""
 
 from rmavatar.data.dataset import Dataset, FrameRecord, load_dataset
 from rmavatar.data.frame import Camera, Frame
-from rmavatar.data.native import NativeMeta, write_native
+from rmavatar.data.native import NativeMeta, export_native, write_native
 
-__all__ = ["Camera", "Frame", "Dataset", "FrameRecord", "load_dataset", "NativeMeta", "write_native"]
+__all__ = ["Camera", "Frame", "Dataset", "FrameRecord", "load_dataset", "NativeMeta", "write_native", "export_native"]

@@ -334,4 +334,41 @@ def _listing(folder: Path) -> set[str]:
     return set(os.listdir(folder))
 
 
-__all__ = ["NativeMeta", "write_native", "open_native", "read_meta", "FORMAT", "VERSION"]
+
+
+def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None = None,
+                  progress: bool = True) -> Path:
+    """Write any Dataset (PeopleSnapshot, ZJU, native) in the native format, at its current image size.
+
+    Every (split, frame) becomes a native frame; a source frame that several splits share with the same
+    parameters and camera is written once. ZJU's Rh/Th conversion is baked in (with the body the
+    dataset was opened with). Returns the path written.
+    """
+    import itertools
+
+    entries: list[tuple[str, int]] = []
+    seen: dict[tuple, int] = {}
+    splits: dict[str, list[int]] = {}
+    for split in ds.splits:
+        splits[split] = []
+        for i in range(ds.num_frames(split)):
+            rec = ds._record(split, i)
+            key = (str(rec.image), rec.betas.tobytes(), rec.global_orient.tobytes(), rec.body_pose.tobytes(),
+                   rec.transl.tobytes(), rec.camera.K.tobytes(), rec.camera.viewmat.tobytes())
+            if key not in seen:
+                seen[key] = len(entries)
+                entries.append((split, i))
+            splits[split].append(seen[key])
+    cameras = [ds.camera(s, i) for s, i in entries]
+    recs = [ds._record(s, i) for s, i in entries]
+    params = {key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}
+    frames_a, frames_b = itertools.tee(ds.frame(s, i) for s, i in entries)
+    meta = NativeMeta(name=name or ds.name, splits=splits, fps=ds.fps if ds.fps is not None else 30.0,
+                      gender=ds.gender, body=ds.body,
+                      extra={"source": {"kind": ds.kind, "path": str(ds.root), "frames": [
+                          {"split": s, "index": r.index} for (s, _), r in zip(entries, recs)]}})
+    return write_native(out_dir, meta, cameras, params, (f.image for f in frames_a),
+                        (f.mask for f in frames_b), progress=progress)
+
+
+__all__ = ["NativeMeta", "write_native", "export_native", "open_native", "read_meta", "FORMAT", "VERSION"]
