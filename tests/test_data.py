@@ -409,6 +409,16 @@ def test_zju_paper_split_camera_and_params(tmp_path):
     np.testing.assert_array_equal(f.mask, expect)
     only_cihp = load_dataset(f"zju:{root}?camera=1", body=j0_of, mask="cihp").frame("test", 0)
     np.testing.assert_array_equal(only_cihp.mask[:, 0], [1, 1, 1, 0, 0, 0])
+    # novel views: the test frames seen by other cameras, each with its own camera
+    for i in range(last_train, last_test):
+        add_zju_frame(root, i, cams=[0])
+    nv = load_dataset(f"zju:{root}?camera=1&views=0", body=j0_of)
+    assert nv.num_frames("novel_view") == 161 and nv.splits["novel_view"][0] == 456
+    g, t = nv.frame("novel_view", 3), nv.frame("test", 3)
+    assert g.index == t.index == 459
+    np.testing.assert_allclose(g.camera.viewmat[:3, 3], Ts[0][:, 0] / 1000, atol=1e-6)
+    np.testing.assert_allclose(g.camera.K, Ks[0], atol=1e-6)
+    np.testing.assert_allclose(g.transl, t.transl, atol=1e-7)
 
 
 def test_zju_undistortion_moves_points_to_the_undistorted_projection(tmp_path):
@@ -454,14 +464,18 @@ def test_zju_bad_input(tmp_path):
     (root / "mask_cihp" / "Camera_B1" / "000004.png").unlink()
     with pytest.raises(UserError, match=r"frame 4 has no mask"):
         load_dataset(root, body=j0_of)
-    add_zju_frame(root, 4)
-    np.save(root / "new_params" / "8.npy", {"poses": np.zeros((1, 72)), "Rh": np.zeros((1, 3))},
-            allow_pickle=True)
-    with pytest.raises(UserError, match=r"new_params/8.npy is missing 'Th'"):
-        load_dataset(root, body=j0_of)
-    add_zju_frame(root, 8)
     with pytest.raises(UserError, match="has 2 cameras"):
         load_dataset(root, body=j0_of, camera=5)
+    with pytest.raises(UserError, match="has 2 cameras .* view 2 asked"):
+        load_dataset(f"{root}?views=0,2", body=j0_of)
+    small = tmp_path / "my_subject"  # every frame present, one parameter file broken
+    make_zju(small, 9)
+    for i in (0, 4, 8):
+        add_zju_frame(small, i)
+    np.save(small / "new_params" / "8.npy", {"poses": np.zeros((1, 72)), "Rh": np.zeros((1, 3))},
+            allow_pickle=True)
+    with pytest.raises(UserError, match=r"new_params/8.npy is missing 'Th'"), pytest.warns(UserWarning):
+        load_dataset(small, body=j0_of)
     annots = np.load(root / "annots.npy", allow_pickle=True).item()
     del annots["cams"]["T"]
     np.save(root / "annots.npy", annots, allow_pickle=True)

@@ -125,21 +125,25 @@ def remap(arr: np.ndarray, rows: np.ndarray, cols: np.ndarray, fill: str) -> np.
 
 
 class ZJUDataset(Dataset):
-    """ZJU-MoCap frames of one camera; undistorts images and masks when the camera has distortion."""
+    """ZJU-MoCap frames; undistorts images and masks of cameras that have distortion.
 
-    def __init__(self, *, distortion: np.ndarray, source_K: np.ndarray, **kwargs):
+    distortion: {id(Camera) of the records: (K [3,3], D [5])} for the cameras in use.
+    """
+
+    def __init__(self, *, distortion: dict[int, tuple[np.ndarray, np.ndarray]], **kwargs):
         super().__init__(mask_reader=read_binary_mask, **kwargs)
-        self.distortion = distortion
-        self._source_K = source_K
-        self._maps = None
+        self._distortion = distortion
+        self._maps: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def _read_pixels(self, rec: FrameRecord):
         image, mask = super()._read_pixels(rec)
-        if not np.any(self.distortion):
+        K, D = self._distortion[id(rec.camera)]
+        if not np.any(D):
             return image, mask
-        if self._maps is None:
-            self._maps = undistort_maps(self._source_K, self.distortion, *self.source_size)
-        rows, cols = self._maps
+        key = id(rec.camera)
+        if key not in self._maps:
+            self._maps[key] = undistort_maps(K, D, *self.source_size)
+        rows, cols = self._maps[key]
         return np.clip(remap(image, rows, cols, "nearest"), 0, 1), np.clip(remap(mask, rows, cols, "zero"), 0, 1)
 
 
@@ -180,38 +184,46 @@ def _load_params(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _camera_index(value, num_cams: int, annots_path: Path, what: str) -> int:
+    try:
+        c = int(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{what} must be an integer camera index, got {value!r}") from None
+    if not 0 <= c < num_cams:
+        raise UserError(f"{annots_path} has {num_cams} cameras (0..{num_cams - 1}); {what} {c} asked")
+    return c
+
+
 def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: str = "union",
-             params: str | None = None, body="anny", **options) -> Dataset:
+             params: str | None = None, body="anny", views=None, **options) -> Dataset:
     """Read one ZJU-MoCap subject seen by one camera.
 
     camera: 0-based index into annots' camera lists (0 = Camera_B1). mask: "union" (mask/ or
     mask_cihp/, whichever exist, united: Neural Body's choice), "mask" or "cihp" (only that folder).
     params: "new_params" or "params" (default: new_params/ where it exists). body: what supplies the
     rest pelvis J0 for the Rh/Th conversion (see `rest_pelvis_provider`): use the body you train with.
+    views: other cameras ("3,9,15", a list, or "all") whose images of the test frames (the train frames
+    where there is no test split) form a ``novel_view`` split for novel-view evaluation.
     Splits: the paper's train/test frames for 377, 386, 387, 392, 393, 394 (train 1 in 4); another
     subject gets every 4th frame as train and no test.
     """
     if options:
-        raise UserError(f"unknown ZJU options {sorted(options)} (known: camera, mask, params, body)")
+        raise UserError(f"unknown ZJU options {sorted(options)} (known: camera, mask, params, body, views)")
     root = Path(root)
     annots_path = root / "annots.npy"
     annots = _load_annots(annots_path)
     cams = annots["cams"]
-    try:
-        camera = int(camera)
-    except (TypeError, ValueError):
-        raise UserError(f"camera must be an integer, got {camera!r}") from None
     num_cams = len(cams["K"])
-    if not 0 <= camera < num_cams:
-        raise UserError(f"{annots_path} has {num_cams} cameras (0..{num_cams - 1}); camera {camera} asked")
+    camera = _camera_index(camera, num_cams, annots_path, "camera")
+    if views is None or views == "":
+        views = []
+    elif views == "all":
+        views = [c for c in range(num_cams) if c != camera]
+    else:
+        items = views.split(",") if isinstance(views, str) else list(views)
+        views = [_camera_index(v, num_cams, annots_path, "view") for v in items]
     if mask not in MASK_MODES:
         raise UserError(f"mask must be one of {MASK_MODES}, got {mask!r}")
-    K = np.asarray(cams["K"][camera], np.float64)
-    R = np.asarray(cams["R"][camera], np.float64)
-    T = np.asarray(cams["T"][camera], np.float64).reshape(3) / 1000.0  # annots store millimetres
-    D = np.asarray(cams["D"][camera], np.float64).reshape(-1)
-    viewmat = np.eye(4)
-    viewmat[:3, :3], viewmat[:3, 3] = R, T
 
     ims = annots["ims"]
     num = len(ims)
@@ -225,6 +237,11 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     else:
         warn(f"{name}: no standard split; every {TRAIN_STEP}th frame is 'train', there is no test split")
         splits = {"train": list(range(0, num, TRAIN_STEP))}
+    # split -> [(frame, camera)]
+    plan = {s: [(i, camera) for i in idx] for s, idx in splits.items()}
+    if views:
+        base = splits.get("test", splits["train"])
+        plan["novel_view"] = [(i, c) for c in views for i in base]
 
     if params is None:
         params = "new_params" if (root / "new_params").is_dir() else "params"
@@ -239,14 +256,12 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     if not mask_dirs:
         raise UserError(f"{root} has no mask folder ({' or '.join(str(root / m) for m in wanted)})")
 
-    used = sorted({i for idx in splits.values() for i in idx})
-    raw = {}
     paths = {}
-    for i in used:
+    for i, c in sorted({ic for pairs in plan.values() for ic in pairs}):
         try:
-            rel = str(np.asarray(ims[i]["ims"]).reshape(-1)[camera])
+            rel = str(np.asarray(ims[i]["ims"]).reshape(-1)[c])
         except (KeyError, IndexError, TypeError):
-            raise UserError(f"{annots_path}: ims[{i}] has no image for camera {camera}") from None
+            raise UserError(f"{annots_path}: ims[{i}] has no image for camera {c}") from None
         image = root / rel
         if not image.is_file():
             raise UserError(f"frame {i} has no image: {image} does not exist")
@@ -255,9 +270,10 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
         if not masks:
             raise UserError(f"frame {i} has no mask: none of "
                             f"{', '.join(str(d / Path(rel).with_suffix('.png')) for d in mask_dirs)} exists")
-        paths[i] = (image, masks)
-        raw[i] = _load_params(params_dir / f"{i + offset}.npy")
+        paths[i, c] = (image, masks)
 
+    used = sorted({i for pairs in plan.values() for i, _ in pairs})
+    raw = {i: _load_params(params_dir / f"{i + offset}.npy") for i in used}
     Rh = np.stack([raw[i]["Rh"] for i in used])
     Th = np.stack([raw[i]["Th"] for i in used])
     poses = np.stack([raw[i]["poses"] for i in used])
@@ -269,18 +285,26 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     conv = zju_to_smpl_params(Rh, Th, poses, J0)
     row = {i: k for k, i in enumerate(used)}
 
-    width, height = _image_size(paths[used[0]][0])
-    cam = Camera(K, viewmat, width, height)
+    width, height = _image_size(paths[used[0], camera][0] if (used[0], camera) in paths else
+                                next(iter(paths.values()))[0])
+    cameras, distortion = {}, {}
+    for c in sorted({c for pairs in plan.values() for _, c in pairs}):
+        K = np.asarray(cams["K"][c], np.float64)
+        viewmat = np.eye(4)
+        viewmat[:3, :3] = np.asarray(cams["R"][c], np.float64)
+        viewmat[:3, 3] = np.asarray(cams["T"][c], np.float64).reshape(3) / 1000.0  # annots store millimetres
+        cameras[c] = Camera(K, viewmat, width, height)
+        distortion[id(cameras[c])] = (K, np.asarray(cams["D"][c], np.float64).reshape(-1))
     records = {
-        split: [FrameRecord(index=i, image=paths[i][0], masks=paths[i][1], camera=cam,
+        split: [FrameRecord(index=i, image=paths[i, c][0], masks=paths[i, c][1], camera=cameras[c],
                             betas=shapes[row[i]].astype(np.float32),
                             global_orient=conv["global_orient"][row[i]],
                             body_pose=conv["body_pose"][row[i]], transl=conv["transl"][row[i]])
-                for i in idx]
-        for split, idx in splits.items()}
+                for i, c in pairs]
+        for split, pairs in plan.items()}
     return ZJUDataset(kind="zju", name=name if camera == 0 else f"{name}-cam{camera}", root=root,
                       records=records, source_size=(width, height), gender="neutral", fps=None, size=size,
-                      cache_mb=cache_mb, distortion=D, source_K=K)
+                      cache_mb=cache_mb, distortion=distortion)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
