@@ -27,7 +27,7 @@ T_MIN = 1e-4
 _SIGMA_MARGIN = 1e-9
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def bin_tiles(means2d, radii_xy, order, tiles_x, tiles_y):
     """Tile lists of Gaussians, front to back.
 
@@ -69,79 +69,108 @@ def bin_tiles(means2d, radii_xy, order, tiles_x, tiles_y):
 
 
 @numba.njit(cache=True, inline="always")
-def _gather(ids, start, n, means2d, conics, colors, opacities):
-    """Copy one tile's Gaussians into a contiguous [n,10] block: mx, my, a, b, c, opacity,
-    ln(255 opacity), r, g, b."""
-    blk = np.empty((n, 10))
-    for j in range(n):
-        g = ids[start + j]
-        blk[j, 0] = means2d[g, 0]
-        blk[j, 1] = means2d[g, 1]
-        blk[j, 2] = conics[g, 0]
-        blk[j, 3] = conics[g, 1]
-        blk[j, 4] = conics[g, 2]
-        op = opacities[g]
-        blk[j, 5] = op
-        blk[j, 6] = math.log(op / ALPHA_MIN) + _SIGMA_MARGIN if op > 0 else -1.0
-        blk[j, 7] = colors[g, 0]
-        blk[j, 8] = colors[g, 1]
-        blk[j, 9] = colors[g, 2]
-    return blk
+def _row_span(py0, th, my, a, b, c, smax):
+    """Tile rows [y0, y1) that can hold pixels with sigma <= smax (plus one row of slack)."""
+    ry = math.sqrt(2.0 * smax * a / (a * c - b * b))  # y half-extent of the ellipse
+    y0 = max(py0, int(math.ceil(my - ry - 0.5)) - 1) if my - ry > py0 else py0
+    y1 = min(py0 + th, int(math.floor(my + ry - 0.5)) + 2) if my + ry < py0 + th else py0 + th
+    return y0, y1
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True, inline="always")
+def _col_span(px0, tw, fy, mx, my, a, b, c, smax):
+    """Tile columns [x0, x1) of row centre ``fy`` with sigma <= smax (plus one pixel of slack),
+    from the roots of 0.5 a dx^2 + b dy dx + 0.5 c dy^2 - smax = 0 with dx = mx - x."""
+    dy = my - fy
+    bd = b * dy
+    disc = bd * bd - a * (c * dy * dy - 2.0 * smax)
+    if disc < 0.0:
+        return px0, px0
+    sq = math.sqrt(disc)
+    lo = mx + (bd - sq) / a
+    hi = mx + (bd + sq) / a
+    x0 = max(px0, int(math.ceil(lo - 0.5)) - 1) if lo > px0 else px0
+    x1 = min(px0 + tw, int(math.floor(hi - 0.5)) + 2) if hi < px0 + tw else px0 + tw
+    return x0, x1
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
 def composite_forward(means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x):
     """Render. Returns image [H,W,3], final transmittance [H,W], and per pixel the count of tile-list
-    entries up to and including its last contributor [H,W] (the backward starts there)."""
+    entries up to and including its last contributor [H,W] (the backward starts there).
+
+    Gaussian-major within a tile: each Gaussian visits only the pixels of the tile inside its
+    ellipse sigma <= ln(255 opacity) (row by row, from the quadratic's roots), the pixels keep their
+    running transmittance, and the tile stops once every pixel has terminated.
+    """
     n_tiles = offsets.shape[0] - 1
     image = np.empty((height, width, 3))
     t_final = np.empty((height, width))
     n_last = np.zeros((height, width), np.int32)
-    bg0 = background[0]
-    bg1 = background[1]
-    bg2 = background[2]
     for t in numba.prange(n_tiles):
         start = offsets[t]
         n = offsets[t + 1] - start
-        blk = _gather(ids, start, n, means2d, conics, colors, opacities)
         px0 = (t % tiles_x) * TILE
         py0 = (t // tiles_x) * TILE
-        for py in range(py0, min(py0 + TILE, height)):
-            fy = py + 0.5
-            for px in range(px0, min(px0 + TILE, width)):
-                fx = px + 0.5
-                T = 1.0
-                r = 0.0
-                gc = 0.0
-                b = 0.0
-                last = 0
-                for j in range(n):
-                    dx = blk[j, 0] - fx
-                    dy = blk[j, 1] - fy
-                    sigma = 0.5 * (blk[j, 2] * dx * dx + blk[j, 4] * dy * dy) + blk[j, 3] * dx * dy
-                    if sigma < 0.0 or sigma > blk[j, 6]:
+        tw = min(TILE, width - px0)
+        th = min(TILE, height - py0)
+        trans = np.ones(TILE * TILE)
+        acc = np.zeros((TILE * TILE, 3))
+        last = np.zeros(TILE * TILE, np.int32)
+        done = np.zeros(TILE * TILE, np.bool_)
+        n_done = 0
+        for j in range(n):
+            if n_done == tw * th:
+                break
+            g = ids[start + j]
+            mx = means2d[g, 0]
+            my = means2d[g, 1]
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            op = opacities[g]
+            smax = math.log(op / ALPHA_MIN) + _SIGMA_MARGIN
+            y0, y1 = _row_span(py0, th, my, ca, cb, cc, smax)
+            for py in range(y0, y1):
+                fy = py + 0.5
+                x0, x1 = _col_span(px0, tw, fy, mx, my, ca, cb, cc, smax)
+                dy = my - fy
+                for px in range(x0, x1):
+                    k = (py - py0) * TILE + (px - px0)
+                    if done[k]:
                         continue
-                    alpha = min(ALPHA_MAX, blk[j, 5] * math.exp(-sigma))
+                    dx = mx - (px + 0.5)
+                    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0.0 or sigma > smax:
+                        continue
+                    alpha = min(ALPHA_MAX, op * math.exp(-sigma))
                     if alpha < ALPHA_MIN:
                         continue
+                    T = trans[k]
                     next_t = T * (1.0 - alpha)
                     if next_t <= T_MIN:
-                        break
+                        done[k] = True
+                        n_done += 1
+                        continue
                     w = alpha * T
-                    r += blk[j, 7] * w
-                    gc += blk[j, 8] * w
-                    b += blk[j, 9] * w
-                    T = next_t
-                    last = j + 1
-                image[py, px, 0] = r + T * bg0
-                image[py, px, 1] = gc + T * bg1
-                image[py, px, 2] = b + T * bg2
+                    acc[k, 0] += colors[g, 0] * w
+                    acc[k, 1] += colors[g, 1] * w
+                    acc[k, 2] += colors[g, 2] * w
+                    trans[k] = next_t
+                    last[k] = j + 1
+        for py in range(py0, py0 + th):
+            for px in range(px0, px0 + tw):
+                k = (py - py0) * TILE + (px - px0)
+                T = trans[k]
+                image[py, px, 0] = acc[k, 0] + T * background[0]
+                image[py, px, 1] = acc[k, 1] + T * background[1]
+                image[py, px, 2] = acc[k, 2] + T * background[2]
                 t_final[py, px] = T
-                n_last[py, px] = last
+                n_last[py, px] = last[k]
     return image, t_final, n_last
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
     means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x,
     t_final, n_last, v_image, v_alpha,
@@ -151,82 +180,114 @@ def composite_backward(
     Walks each pixel's contributors back to front, recovering T_i = T_{i+1} / (1 - alpha_i) and the
     colour S_i composited behind Gaussian i (background included):
       dC/dc_i = alpha_i T_i,  dC/dalpha_i = c_i T_i - S_i / (1 - alpha_i),
-      dA/dalpha_i = T_final / (1 - alpha_i),  dC/dbackground = T_final.
+      dA/dalpha_i = T_final / (1 - alpha_i),  dC/dbackground = T_final,
+    then alpha_i = min(0.999, o_i exp(-sigma_i)) and sigma_i = 0.5 d^T conic_i d, d = mean_i - pixel.
+    Gaussian-major per tile like the forward, so each Gaussian's gradient is summed in registers.
     Returns per-intersection gradients [I,9] (dmx, dmy, da, db, dc, dr, dg, db, dopacity) and the
     background gradient [3].
     """
     n_tiles = offsets.shape[0] - 1
     grads = np.zeros((ids.shape[0], 9))
     v_bg_tiles = np.zeros((n_tiles, 3))
-    bg0 = background[0]
-    bg1 = background[1]
-    bg2 = background[2]
     for t in numba.prange(n_tiles):
         start = offsets[t]
-        n = offsets[t + 1] - start
-        blk = _gather(ids, start, n, means2d, conics, colors, opacities)
         px0 = (t % tiles_x) * TILE
         py0 = (t // tiles_x) * TILE
-        vb0 = 0.0
-        vb1 = 0.0
-        vb2 = 0.0
-        for py in range(py0, min(py0 + TILE, height)):
-            fy = py + 0.5
-            for px in range(px0, min(px0 + TILE, width)):
-                fx = px + 0.5
-                t_fin = t_final[py, px]
-                vr = v_image[py, px, 0]
-                vg = v_image[py, px, 1]
-                vb = v_image[py, px, 2]
-                va = v_alpha[py, px]
-                vb0 += vr * t_fin
-                vb1 += vg * t_fin
-                vb2 += vb * t_fin
-                T = t_fin
-                s0 = t_fin * bg0
-                s1 = t_fin * bg1
-                s2 = t_fin * bg2
-                for j in range(n_last[py, px] - 1, -1, -1):
-                    dx = blk[j, 0] - fx
-                    dy = blk[j, 1] - fy
-                    sigma = 0.5 * (blk[j, 2] * dx * dx + blk[j, 4] * dy * dy) + blk[j, 3] * dx * dy
-                    if sigma < 0.0 or sigma > blk[j, 6]:
+        tw = min(TILE, width - px0)
+        th = min(TILE, height - py0)
+        trans = np.empty(TILE * TILE)
+        behind = np.empty((TILE * TILE, 3))
+        stop = np.zeros(TILE * TILE, np.int32)
+        n_max = 0
+        for py in range(py0, py0 + th):
+            for px in range(px0, px0 + tw):
+                k = (py - py0) * TILE + (px - px0)
+                T = t_final[py, px]
+                trans[k] = T
+                behind[k, 0] = T * background[0]
+                behind[k, 1] = T * background[1]
+                behind[k, 2] = T * background[2]
+                stop[k] = n_last[py, px]
+                n_max = max(n_max, stop[k])
+                v_bg_tiles[t, 0] += v_image[py, px, 0] * T
+                v_bg_tiles[t, 1] += v_image[py, px, 1] * T
+                v_bg_tiles[t, 2] += v_image[py, px, 2] * T
+        for j in range(n_max - 1, -1, -1):
+            g = ids[start + j]
+            mx = means2d[g, 0]
+            my = means2d[g, 1]
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            op = opacities[g]
+            cr = colors[g, 0]
+            cg = colors[g, 1]
+            cbl = colors[g, 2]
+            smax = math.log(op / ALPHA_MIN) + _SIGMA_MARGIN
+            g_mx = 0.0
+            g_my = 0.0
+            g_a = 0.0
+            g_b = 0.0
+            g_c = 0.0
+            g_r = 0.0
+            g_g = 0.0
+            g_bl = 0.0
+            g_op = 0.0
+            y0, y1 = _row_span(py0, th, my, ca, cb, cc, smax)
+            for py in range(y0, y1):
+                fy = py + 0.5
+                x0, x1 = _col_span(px0, tw, fy, mx, my, ca, cb, cc, smax)
+                dy = my - fy
+                for px in range(x0, x1):
+                    k = (py - py0) * TILE + (px - px0)
+                    if j >= stop[k]:
+                        continue
+                    dx = mx - (px + 0.5)
+                    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0.0 or sigma > smax:
                         continue
                     gauss = math.exp(-sigma)
-                    raw = blk[j, 5] * gauss
+                    raw = op * gauss
                     alpha = min(ALPHA_MAX, raw)
                     if alpha < ALPHA_MIN:
                         continue
                     one_minus = 1.0 - alpha
-                    T = T / one_minus
+                    T = trans[k] / one_minus
+                    trans[k] = T
                     w = alpha * T
-                    k = start + j
-                    grads[k, 5] += w * vr
-                    grads[k, 6] += w * vg
-                    grads[k, 7] += w * vb
+                    vr = v_image[py, px, 0]
+                    vg = v_image[py, px, 1]
+                    vb = v_image[py, px, 2]
+                    g_r += w * vr
+                    g_g += w * vg
+                    g_bl += w * vb
                     v_a = (
-                        (blk[j, 7] * T - s0 / one_minus) * vr
-                        + (blk[j, 8] * T - s1 / one_minus) * vg
-                        + (blk[j, 9] * T - s2 / one_minus) * vb
-                        + va * t_fin / one_minus
+                        (cr * T - behind[k, 0] / one_minus) * vr
+                        + (cg * T - behind[k, 1] / one_minus) * vg
+                        + (cbl * T - behind[k, 2] / one_minus) * vb
+                        + v_alpha[py, px] * t_final[py, px] / one_minus
                     )
-                    s0 += blk[j, 7] * w
-                    s1 += blk[j, 8] * w
-                    s2 += blk[j, 9] * w
+                    behind[k, 0] += cr * w
+                    behind[k, 1] += cg * w
+                    behind[k, 2] += cbl * w
                     if raw <= ALPHA_MAX:  # the clamp has zero slope
-                        grads[k, 8] += gauss * v_a
+                        g_op += gauss * v_a
                         v_sigma = -raw * v_a
-                        ga = blk[j, 2]
-                        gb = blk[j, 3]
-                        gcc = blk[j, 4]
-                        grads[k, 0] += (ga * dx + gb * dy) * v_sigma
-                        grads[k, 1] += (gb * dx + gcc * dy) * v_sigma
-                        grads[k, 2] += 0.5 * dx * dx * v_sigma
-                        grads[k, 3] += dx * dy * v_sigma
-                        grads[k, 4] += 0.5 * dy * dy * v_sigma
-        v_bg_tiles[t, 0] = vb0
-        v_bg_tiles[t, 1] = vb1
-        v_bg_tiles[t, 2] = vb2
+                        g_mx += (ca * dx + cb * dy) * v_sigma
+                        g_my += (cb * dx + cc * dy) * v_sigma
+                        g_a += 0.5 * dx * dx * v_sigma
+                        g_b += dx * dy * v_sigma
+                        g_c += 0.5 * dy * dy * v_sigma
+            row = start + j
+            grads[row, 0] = g_mx
+            grads[row, 1] = g_my
+            grads[row, 2] = g_a
+            grads[row, 3] = g_b
+            grads[row, 4] = g_c
+            grads[row, 5] = g_r
+            grads[row, 6] = g_g
+            grads[row, 7] = g_bl
+            grads[row, 8] = g_op
     v_bg = np.zeros(3)
     for t in range(n_tiles):
         v_bg[0] += v_bg_tiles[t, 0]
@@ -235,7 +296,7 @@ def composite_backward(
     return grads, v_bg
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def sum_per_gaussian(grads, ids, n):
     """Sum per-intersection gradients [I,9] into per-Gaussian ones [n,9]."""
     out = np.zeros((n, 9))

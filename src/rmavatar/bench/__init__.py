@@ -1,0 +1,1 @@
+"""Benchmarks behind ``rmavatar bench NAME`` (see ``rmavatar.bench.cli``)."""

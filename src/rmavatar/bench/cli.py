@@ -1,0 +1,26 @@
+"""``rmavatar bench NAME``: run one benchmark.
+
+Each NAME maps to a module with ``add_arguments(parser)`` and ``run(args) -> int``, like a top-level
+command; keep heavy imports inside ``run`` since every row's ``add_arguments`` is called.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+# name -> (module, one-line help). Add a row per benchmark.
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "raster": ("rmavatar.bench.raster", "rasterizer forward / forward+backward time, peak memory, Gaussians/s"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="benchmark", metavar="NAME", required=True)
+    for name, (module, help_text) in BENCHMARKS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        importlib.import_module(module).add_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(BENCHMARKS[args.benchmark][0]).run(args) or 0)

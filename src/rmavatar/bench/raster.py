@@ -1,0 +1,248 @@
+"""``rmavatar bench raster``: speed and memory of the rasterizer on an avatar-like scene.
+
+For each (N Gaussians, image size): forward and forward+backward wall time (median over repeats
+after warm-up), peak resident-memory growth during one forward+backward, Gaussians per second.
+The dense float64 reference is timed on a small configuration it fits, next to the fast backend on
+the same configuration, and reported as a ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import threading
+import time
+
+DEFAULT_CONFIGS = ("10000x256", "10000x512", "50000x256", "50000x512")
+REFERENCE_CONFIG = "1000x64"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    parser.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), metavar="NxSIZE",
+                        help="Gaussian count x square image size (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (default 7)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed runs first (default 2)")
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"),
+                        help="rasterizer backend (default: auto)")
+    parser.add_argument("--device", default="cpu", help="torch device of the scene (cuda for gsplat)")
+    parser.add_argument("--sh-degree", type=int, default=3, help="SH degree of the colours (default 3)")
+    parser.add_argument("--no-reference", action="store_true", help="skip the dense reference comparison")
+    parser.epilog = "Example: rmavatar bench raster --json bench_raster.json"
+
+
+def _parse_config(text: str) -> tuple[int, int]:
+    from rmavatar.utils import UserError
+
+    try:
+        n, size = text.lower().split("x")
+        n, size = int(n), int(size)
+        if n < 0 or size <= 0:
+            raise ValueError
+        return n, size
+    except ValueError:
+        raise UserError(f"config {text!r} is not NxSIZE, e.g. 10000x256") from None
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+class _PeakRSS:
+    """Polls this process's resident set size in a thread; ``peak - start`` is the growth."""
+
+    def __init__(self, interval: float = 0.001):
+        self.interval = interval
+
+    def __enter__(self):
+        self.start = self.peak = _rss_bytes()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def _poll(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _rss_bytes())
+            time.sleep(self.interval)
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, _rss_bytes())
+
+
+def _measure(fn_forward, repeats: int, warmup: int, sync, memory: bool) -> dict:
+    """fn_forward() -> (image, alpha, params); times forward and forward+backward."""
+    import torch
+
+    weights = {}
+
+    def fwd_bwd():
+        image, alpha, params = fn_forward()
+        if "w" not in weights:
+            g = torch.Generator().manual_seed(0)
+            weights["w"] = torch.rand(image.shape, generator=g, dtype=image.dtype).to(image.device)
+        loss = (image * weights["w"]).sum() + alpha.sum()
+        loss.backward()
+        for p in params:
+            p.grad = None
+        sync()
+
+    def fwd():
+        fn_forward()
+        sync()
+
+    def timed(f):
+        for _ in range(warmup):
+            f()
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return ts
+
+    t_f = timed(fwd)
+    t_fb = timed(fwd_bwd)
+    out = {
+        "forward_s": statistics.median(t_f),
+        "forward_backward_s": statistics.median(t_fb),
+        "forward_s_min": min(t_f),
+        "forward_backward_s_min": min(t_fb),
+    }
+    if memory:
+        with _PeakRSS() as mem:
+            fwd_bwd()
+        out["peak_rss_growth_mb"] = (mem.peak - mem.start) / 2**20
+    return out
+
+
+def _scene(n: int, size: int, sh_degree: int, device: str):
+    import torch
+
+    from rmavatar.render.scenes import figure_scene, orbit_camera
+
+    sc = figure_scene(n, seed=0, sh_degree=sh_degree)
+    params = {k: v.to(device).requires_grad_(True) for k, v in sc.items()}
+    viewmat, K = orbit_camera(size)
+    bg = torch.ones(3, device=device, requires_grad=True)
+    return params, viewmat.to(device), K.to(device), bg
+
+
+def _bench_one(n, size, args, sync, rasterize_fn, dtype=None, memory=True) -> dict:
+    params, viewmat, K, bg = _scene(n, size, args.sh_degree, args.device)
+    if dtype is not None:
+        params = {k: v.detach().to(dtype).requires_grad_(True) for k, v in params.items()}
+        viewmat, K, bg = viewmat.to(dtype), K.to(dtype), bg.detach().to(dtype).requires_grad_(True)
+    plist = list(params.values()) + [bg]
+
+    def forward():
+        image, alpha, _ = rasterize_fn(params["means"], params["quats"], params["scales"], params["opacities"],
+                                       params["colors"], viewmat, K, size, size, background=bg,
+                                       sh_degree=args.sh_degree)
+        return image, alpha, plist
+
+    return _measure(forward, args.repeats, args.warmup, sync, memory)
+
+
+def _scene_stats(n, size, args) -> dict:
+    import torch
+
+    from rmavatar.render import rasterize
+
+    params, viewmat, K, bg = _scene(n, size, args.sh_degree, "cpu")
+    with torch.no_grad():
+        image, alpha, info = rasterize(params["means"], params["quats"], params["scales"], params["opacities"],
+                                       params["colors"], viewmat, K, size, size, sh_degree=args.sh_degree,
+                                       backend="cpu")
+    vis = info["visible"]
+    return {
+        "visible": int(vis.sum()),
+        "mean_radius_px": float(info["radii"][vis].float().mean()) if vis.any() else 0.0,
+        "covered_fraction": float((alpha > 0.5).float().mean()),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np  # noqa: F401  (imported before torch threads start, as in real use)
+    import torch
+
+    from rmavatar.render import rasterize
+    from rmavatar.render.reference import reference_rasterize
+    from rmavatar.utils import UserError, atomic_path
+
+    configs = [_parse_config(c) for c in args.configs]
+    if args.repeats < 1 or args.warmup < 0:
+        raise UserError("--repeats must be >= 1 and --warmup >= 0")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"--device {args.device}: no CUDA device is available")
+    cuda = args.device.startswith("cuda")
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+
+    def fast(*a, **kw):
+        return rasterize(*a, backend=args.backend, **kw)
+
+    load_before = os.getloadavg()
+    results = []
+    for n, size in configs:
+        row = {"n": n, "size": size, **_bench_one(n, size, args, sync, fast)}
+        row["gaussians_per_s_forward_backward"] = n / row["forward_backward_s"]
+        row["gaussians_per_s_forward"] = n / row["forward_s"]
+        row.update(_scene_stats(n, size, args))
+        results.append(row)
+        print(
+            f"N={n:>6} {size}x{size}: forward {row['forward_s'] * 1e3:7.1f} ms, forward+backward "
+            f"{row['forward_backward_s'] * 1e3:7.1f} ms, peak RSS +{row['peak_rss_growth_mb']:.0f} MB, "
+            f"{row['gaussians_per_s_forward_backward'] / 1e3:.0f}k Gaussians/s (fwd+bwd)",
+            flush=True,
+        )
+
+    reference = None
+    if not args.no_reference and not cuda:
+        n, size = _parse_config(REFERENCE_CONFIG)
+        ref_args = argparse.Namespace(**{**vars(args), "repeats": min(args.repeats, 3), "warmup": 1})
+        ref = _bench_one(n, size, ref_args, sync, reference_rasterize, dtype=torch.float64)
+        ours = _bench_one(n, size, ref_args, sync, fast, dtype=torch.float64)
+        reference = {
+            "n": n, "size": size, "dtype": "float64 (both)",
+            "reference": ref, "fast": ours,
+            "speedup_forward": ref["forward_s"] / ours["forward_s"],
+            "speedup_forward_backward": ref["forward_backward_s"] / ours["forward_backward_s"],
+        }
+        print(
+            f"dense reference N={n} {size}x{size}: forward+backward {ref['forward_backward_s'] * 1e3:.0f} ms "
+            f"(+{ref['peak_rss_growth_mb']:.0f} MB) vs {ours['forward_backward_s'] * 1e3:.1f} ms: "
+            f"{reference['speedup_forward_backward']:.0f}x faster",
+            flush=True,
+        )
+
+    from rmavatar.render._numba import numba
+
+    report = {
+        "benchmark": "raster",
+        "backend": args.backend,
+        "device": args.device,
+        "scene": "figure_scene: surface discs on a 1.8 m figure, 3 m away, SH degree "
+                 f"{args.sh_degree}, white background, loss = sum(w * image) + sum(alpha)",
+        "timing": f"median of {args.repeats} runs after {args.warmup} warm-up runs, wall clock",
+        "memory": "peak_rss_growth_mb: growth of the process's resident set during one forward+backward, "
+                  "polled every 1 ms from /proc/self/statm",
+        "machine": {
+            "cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "numba": numba.__version__,
+            "numba_threads": numba.get_num_threads(),
+            "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
+        },
+        "results": results,
+        "reference": reference,
+    }
+    if args.json:
+        with atomic_path(args.json) as tmp:
+            tmp.write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
