@@ -336,10 +336,10 @@ def pose_shell(shell: Shell, verts: np.ndarray, normals: np.ndarray, root_rot: n
     amp = h * (0.003 + 0.010 * np.tanh(3.0 * asym))
     phase = 5.0 * s.twist + 3.0 * (s.flex_l - s.flex_r) + 2.0 * (s.abd_l - s.abd_r)
     folds = amp * (0.5 + 0.5 * np.sin(8.0 * th + phase + 6.0 * h))
-    d_n = 0.010 + 0.022 * h**1.5 + folds
+    d_n = 0.010 + 0.018 * h**1.5 + folds
     # Hem swing in the pelvis frame: it lags the torso twist and follows the hip sway; the thighs push
     # the front (flexion) or back (extension) of the hem on their side.
-    alpha = h * (-0.8 * s.twist + 0.5 * s.sway)
+    alpha = h * (-1.2 * s.twist + 0.6 * s.sway)
     tang = np.stack([np.cos(th), np.zeros_like(th), -np.sin(th)], 1) * (alpha * r)[:, None]
     left = tx.smoothstep(-0.03, 0.05, r * np.sin(th))
     right = tx.smoothstep(-0.03, 0.05, -r * np.sin(th))
