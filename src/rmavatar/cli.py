@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("rmavatar.export.cli", "write a trained avatar as a standard 3DGS PLY (canonical pose or a motion frame)"),
     "view": ("rmavatar.viewer.cli", "interactive browser viewer (viser) of an avatar, with motion playback and camera presets"),
     "train": ("rmavatar.train.cli", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
+    "render": ("rmavatar.render.cli", "render a Gaussian scene (synthetic figure or 3DGS PLY) to a PNG"),
     "bench": ("rmavatar.bench.cli", "benchmarks: bench raster (rasterizer speed and memory)"),
     "synth": ("rmavatar.data.synth.cli", "render the synthetic clothed subject (turning in an A-pose, novel poses) into a native dataset"),
 }
