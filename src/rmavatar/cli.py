@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "animate": ("rmavatar.animate.cli", "drive a trained avatar with a motion file (AIST++, AMASS, GART) into an MP4 or PNG frames"),
     "export": ("rmavatar.export.cli", "write a trained avatar as a standard 3DGS PLY (canonical pose or a motion frame)"),
     "view": ("rmavatar.viewer.cli", "interactive browser viewer (viser) of an avatar, with motion playback and camera presets"),
+    "eval": ("rmavatar.evaluate.cli", "score a trained run on a dataset split: PSNR, SSIM, LPIPS per frame and mean, protocol in the JSON"),
     "train": ("rmavatar.train.cli", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
     "render": ("rmavatar.render.cli", "render a Gaussian scene (synthetic figure or 3DGS PLY) to a PNG"),
     "bench": ("rmavatar.bench.cli", "benchmarks: bench raster (rasterizer speed and memory)"),

@@ -1,0 +1,194 @@
+"""`rmavatar eval` / `evaluate_run` end to end on a tiny run (Anny body, 48x48, two training steps).
+
+The key check: a dataset whose ground-truth frames are the avatar's own renders (made here, directly
+with the rasterizer) must score as pixel-exact up to PNG quantisation. Any mismatch of pose, camera,
+image size, split or background in the evaluation path would show up as a large error.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from rmavatar.cli import main
+from rmavatar.utils import UserError
+
+SIZE = 48
+
+
+def camera_dict(n: int) -> dict:
+    """One fixed camera looking at the Anny body (SMPL axes: y up, facing +z) from 3.2 m in front."""
+    viewmat = np.diag([1.0, -1.0, -1.0, 1.0]).astype(np.float32)  # camera looks along world -z
+    viewmat[:3, 3] = -viewmat[:3, :3] @ np.array([0.0, -0.4, 3.2], np.float32)
+    K = np.array([[70.0, 0, SIZE / 2], [0, 70.0, SIZE / 2], [0, 0, 1]], np.float32)
+    return {"K": K, "viewmat": viewmat}
+
+
+def params(n: int, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    body_pose = (0.15 * rng.standard_normal((n, 69))).astype(np.float32)
+    go = np.zeros((n, 3), np.float32)
+    go[:, 1] = np.linspace(-0.4, 0.4, n)  # turn a little, frame to frame
+    return {"betas": np.zeros((n, 10), np.float32), "global_orient": go, "body_pose": body_pose,
+            "transl": np.zeros((n, 3), np.float32)}
+
+
+def write_dataset(path, images, masks, p, splits):
+    from rmavatar.data import write_native
+
+    write_native(path, {"name": "tiny", "splits": splits, "body": "anny"}, camera_dict(len(images)), p,
+                 images, masks, progress=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A run trained for two steps, and a dataset whose test frames are that run's own renders."""
+    from rmavatar.render import rasterize
+    from rmavatar.train import TrainConfig, load_run, train
+
+    root = tmp_path_factory.mktemp("eval")
+    n = 4
+    p = params(n, 0)
+    grey = [np.full((SIZE, SIZE, 3), 0.5, np.float32)] * n
+    ones = [np.ones((SIZE, SIZE), np.float32)] * n
+    data = write_dataset(root / "data", grey, ones, p, {"train": [0, 1], "test": [2, 3]})
+    cfg = TrainConfig()
+    cfg.data.path = str(data)
+    cfg.optim.iters = 2
+    cfg.density.enabled = False
+    cfg.log.tensorboard = False
+    cfg.model.sh_degree = 1
+    cfg.device = "cpu"
+    run_dir = root / "run"
+    train(cfg, run_dir, progress=False)
+
+    # The oracle: render the test frames directly, white background.
+    run = load_run(run_dir)
+    cam = camera_dict(n)
+    renders = []
+    with torch.no_grad():
+        for i in range(n):
+            t = {k: torch.as_tensor(v[i : i + 1]) for k, v in p.items()}
+            verts = run.body(t["betas"], t["global_orient"], t["body_pose"], t["transl"]).vertices[0]
+            gs = run.avatar(verts, t["body_pose"][0])
+            img, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh,
+                                  torch.as_tensor(cam["viewmat"]), torch.as_tensor(cam["K"]), SIZE, SIZE,
+                                  background=torch.ones(3), sh_degree=gs.sh_degree)
+            renders.append(img.clamp(0, 1).numpy())
+    # Stored as 8-bit PNGs, as every dataset is.
+    quantised = [np.round(r * 255).astype(np.uint8) for r in renders]
+    exact = write_dataset(root / "exact", quantised, ones, p, {"train": [0, 1], "test": [2, 3]})
+    return {"root": root, "run": run_dir, "data": data, "exact": exact, "renders": renders,
+            "quantised": quantised, "iteration": run.iteration}
+
+
+def test_self_renders_score_as_exact(tiny):
+    from rmavatar.evaluate import psnr
+    from rmavatar.evaluate.run import evaluate_run
+
+    res = evaluate_run(tiny["run"], data=str(tiny["exact"]), split="test", progress=False)
+    assert [r["index"] for r in res["frames"]] == [2, 3]
+    for row, i in zip(res["frames"], (2, 3)):
+        expected = psnr(tiny["renders"][i], tiny["quantised"][i].astype(np.float32) / 255)
+        assert row["psnr"] == pytest.approx(expected, abs=1e-3)
+        # 8-bit rounding alone: PSNR about 59 dB, no more error than that.
+        assert row["psnr"] > 55 and row["ssim"] > 0.999 and row["lpips"] < 1e-3
+    means = res["mean"]
+    assert means["psnr"] == pytest.approx(np.mean([r["psnr"] for r in res["frames"]]))
+    proto = res["protocol"]
+    assert proto["split"] == "test" and proto["background"] == "white" and proto["pose_refinement"] is False
+    assert proto["resolution"] == [SIZE, SIZE] and proto["frames"] == 2 and proto["iteration"] == tiny["iteration"]
+
+    # The same ground truth against a black background: the render changes, the (unmasked) truth not.
+    black = evaluate_run(tiny["run"], data=str(tiny["exact"]), split="test", bg="black", progress=False)
+    assert black["mean"]["psnr"] < 30 and black["protocol"]["background"] == "black"
+
+
+def test_mask_composites_ground_truth_over_background(tiny):
+    # Frames with an empty mask are pure background: scoring them equals scoring the render against a
+    # plain white image.
+    from rmavatar.evaluate import psnr, ssim
+    from rmavatar.evaluate.run import evaluate_run
+
+    n = 4
+    noise = [np.random.default_rng(i).random((SIZE, SIZE, 3)).astype(np.float32) for i in range(n)]
+    empty = [np.zeros((SIZE, SIZE), np.float32)] * n
+    data = write_dataset(tiny["root"] / "masked", noise, empty, params(n, 0), {"train": [0, 1], "test": [2, 3]})
+    res = evaluate_run(tiny["run"], data=str(data), progress=False)
+    white = np.ones((SIZE, SIZE, 3), np.float32)
+    for row, i in zip(res["frames"], (2, 3)):
+        assert row["psnr"] == pytest.approx(psnr(tiny["renders"][i], white), abs=1e-3)
+        assert row["ssim"] == pytest.approx(ssim(tiny["renders"][i], white), abs=1e-4)
+
+
+def test_cli_writes_json_and_images(tiny, capsys):
+    from PIL import Image
+
+    out = tiny["root"] / "cli" / "eval.json"
+    out.parent.mkdir()
+    code = main(["eval", str(tiny["run"]), "--data", str(tiny["exact"]), "--json", str(out), "--quiet"])
+    assert code == 0
+    res = json.loads(out.read_text())
+    assert len(res["frames"]) == 2 and set(res["mean"]) == {"psnr", "ssim", "lpips"}
+    assert "PSNR" in capsys.readouterr().out
+    images = out.parent / "eval_images"
+    pngs = sorted(images.glob("*.png"))
+    assert [p.name for p in pngs] == ["test_0000_frame00002.png", "test_0001_frame00003.png"]
+    panel = np.asarray(Image.open(pngs[0]))
+    assert panel.shape == (SIZE, 3 * SIZE, 3)
+    # render | ground truth | heat map: the first two agree to 8-bit rounding, the map is near-black.
+    assert np.abs(panel[:, :SIZE].astype(int) - tiny["quantised"][2]).max() <= 1
+    assert np.array_equal(panel[:, SIZE : 2 * SIZE], tiny["quantised"][2])
+    assert panel[:, 2 * SIZE :].max() < 40
+    assert json.loads((images / "metrics.json").read_text()) == res
+    # Running again replaces our own images folder.
+    assert main(["eval", str(tiny["run"]), "--data", str(tiny["exact"]), "--json", str(out), "--quiet",
+                 "--frames", "1"]) == 0
+    assert len(list(images.glob("*.png"))) == 1 and json.loads(out.read_text())["protocol"]["frames"] == 1
+
+
+def test_heat_map_scale():
+    from rmavatar.evaluate.run import HEAT_MAX, heat_map
+
+    a = np.zeros((2, 2, 3))
+    b = np.array([[[0, 0, 0], [HEAT_MAX] * 3], [[1, 1, 1], [HEAT_MAX / 2] * 3]], dtype=np.float64)
+    h = heat_map(a, b)
+    assert np.allclose(h[0, 0], [0, 0, 4 / 255]) and np.allclose(h[0, 1], h[1, 0])  # saturates at HEAT_MAX
+    assert np.allclose(h[1, 1], np.array([188, 55, 84]) / 255)  # the middle anchor
+
+
+def test_bad_input(tiny, tmp_path, capsys):
+    from rmavatar.evaluate.run import evaluate_run
+
+    # A folder without a run, a run without a checkpoint.
+    with pytest.raises(UserError, match="not an rmavatar run"):
+        evaluate_run(tmp_path, progress=False)
+    # A split the dataset lacks names the ones it has.
+    with pytest.raises(UserError, match="no split 'novel_pose'.*train, test"):
+        evaluate_run(tiny["run"], split="novel_pose", progress=False)
+    with pytest.raises(UserError, match="background"):
+        evaluate_run(tiny["run"], bg="green", progress=False)
+    # An unwritable JSON path fails before any work, and leaves nothing behind.
+    code = main(["eval", str(tiny["run"]), "--json", str(tmp_path / "missing" / "e.json")])
+    assert code == 2 and "does not exist" in capsys.readouterr().err
+    # Someone else's non-empty folder is never replaced by the images.
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "keep.txt").write_text("precious")
+    code = main(["eval", str(tiny["run"]), "--json", str(tmp_path / "e.json"), "--images", str(other), "--quiet"])
+    assert code == 2 and "refusing to replace" in capsys.readouterr().err
+    assert (other / "keep.txt").read_text() == "precious" and not (tmp_path / "e.json").exists()
+    # A failure in the middle of the frames (a missing image file) leaves no images folder.
+    import shutil
+
+    broken = shutil.copytree(tiny["exact"], tmp_path / "broken")
+    victim = sorted((broken / "images").iterdir())[3]  # the second test frame
+    victim.unlink()
+    with pytest.raises(Exception):
+        evaluate_run(tiny["run"], data=str(broken), out_dir=tmp_path / "imgs", progress=False)
+    assert not (tmp_path / "imgs").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "mine"]
