@@ -249,7 +249,6 @@ class AnnyBody(BodyModel):
         self.register_buffer("uv", tensors["uv"].float(), persistent=False)
         self.register_buffer("face_uv_index", tensors["face_uv_index"].long(), persistent=False)
         self.register_buffer("face_part", tensors["face_part"].long(), persistent=False)
-        self.face_parts = {n: torch.nonzero(self.face_part == i)[:, 0] for i, n in enumerate(self.part_names)}
         interior = torch.tensor([self.part_names.index(n) for n in INTERIOR_PARTS if n in self.part_names])
         keep = ~torch.isin(self.face_part, interior)
         self.register_buffer("binding_faces", torch.nonzero(keep)[:, 0], persistent=False)
@@ -257,6 +256,11 @@ class AnnyBody(BodyModel):
             zero = torch.zeros(1, 3)
             canonical = self.forward(None, zero, torch.zeros(1, 69), zero).vertices[0]
         self.register_buffer("v_template", canonical, persistent=False)
+
+    @property
+    def face_parts(self) -> dict[str, torch.Tensor]:
+        """Part name -> LongTensor of face indices (on the body's device)."""
+        return {n: torch.nonzero(self.face_part == i)[:, 0] for i, n in enumerate(self.part_names)}
 
     def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor) -> torch.Tensor:
         """Retarget SMPL axis-angle pose to Anny's local bone rotations ``[B,104,3,3]`` (our frame)."""
