@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rasterizer backend (default: auto)")
     parser.add_argument("--device", default="cpu", help="torch device of the scene (cuda for gsplat)")
     parser.add_argument("--sh-degree", type=int, default=3, help="SH degree of the colours (default 3)")
+    parser.add_argument("--disc-scale", type=float, default=1.5,
+                        help="Gaussian size as a multiple of the point spacing (default 1.5)")
     parser.add_argument("--no-reference", action="store_true", help="skip the dense reference comparison")
     parser.epilog = "Example: rmavatar bench raster --json bench_raster.json"
 
@@ -122,12 +124,12 @@ def _measure(fn_forward, repeats: int, warmup: int, sync, memory: bool) -> dict:
     return out
 
 
-def _scene(n: int, size: int, sh_degree: int, device: str):
+def _scene(n: int, size: int, sh_degree: int, device: str, disc_scale: float):
     import torch
 
     from rmavatar.render.scenes import figure_scene, orbit_camera
 
-    sc = figure_scene(n, seed=0, sh_degree=sh_degree)
+    sc = figure_scene(n, seed=0, sh_degree=sh_degree, disc_scale=disc_scale)
     params = {k: v.to(device).requires_grad_(True) for k, v in sc.items()}
     viewmat, K = orbit_camera(size)
     bg = torch.ones(3, device=device, requires_grad=True)
@@ -135,7 +137,7 @@ def _scene(n: int, size: int, sh_degree: int, device: str):
 
 
 def _bench_one(n, size, args, sync, rasterize_fn, dtype=None, memory=True) -> dict:
-    params, viewmat, K, bg = _scene(n, size, args.sh_degree, args.device)
+    params, viewmat, K, bg = _scene(n, size, args.sh_degree, args.device, args.disc_scale)
     if dtype is not None:
         params = {k: v.detach().to(dtype).requires_grad_(True) for k, v in params.items()}
         viewmat, K, bg = viewmat.to(dtype), K.to(dtype), bg.detach().to(dtype).requires_grad_(True)
@@ -155,7 +157,7 @@ def _scene_stats(n, size, args) -> dict:
 
     from rmavatar.render import rasterize
 
-    params, viewmat, K, bg = _scene(n, size, args.sh_degree, "cpu")
+    params, viewmat, K, bg = _scene(n, size, args.sh_degree, "cpu", args.disc_scale)
     with torch.no_grad():
         image, alpha, info = rasterize(params["means"], params["quats"], params["scales"], params["opacities"],
                                        params["colors"], viewmat, K, size, size, sh_degree=args.sh_degree,
@@ -227,8 +229,9 @@ def run(args: argparse.Namespace) -> int:
         "benchmark": "raster",
         "backend": args.backend,
         "device": args.device,
-        "scene": "figure_scene: surface discs on a 1.8 m figure, 3 m away, SH degree "
-                 f"{args.sh_degree}, white background, loss = sum(w * image) + sum(alpha)",
+        "scene": f"figure_scene: surface discs (sigma = {args.disc_scale} x point spacing) on a 1.8 m "
+                 f"figure, 3 m away, SH degree {args.sh_degree}, white background, "
+                 "loss = sum(w * image) + sum(alpha)",
         "timing": f"median of {args.repeats} runs after {args.warmup} warm-up runs, wall clock",
         "memory": "peak_rss_growth_mb: growth of the process's resident set during one forward+backward, "
                   "polled every 1 ms from /proc/self/statm",

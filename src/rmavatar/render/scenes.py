@@ -24,9 +24,11 @@ _PARTS = (
 )
 
 
-def figure_scene(n: int, seed: int = 0, sh_degree: int = 3, dtype=torch.float32) -> dict[str, Tensor]:
-    """``n`` surface Gaussians on a 1.8 m figure at the origin, sized like a trained avatar's
-    (flat discs about as wide as their spacing). Returns means, quats, scales, opacities and
+def figure_scene(
+    n: int, seed: int = 0, sh_degree: int | None = 3, dtype=torch.float32, disc_scale: float = 1.5
+) -> dict[str, Tensor]:
+    """``n`` surface Gaussians on a 1.8 m figure at the origin, sized like a trained avatar's:
+    flat discs whose standard deviation is ``disc_scale`` times the point spacing (log-normal spread). Returns means, quats, scales, opacities and
     colors ([N,3] if sh_degree is None, else SH [N,(d+1)^2,3])."""
     g = torch.Generator().manual_seed(seed)
     centres = torch.tensor([p[0] for p in _PARTS], dtype=torch.float64)
@@ -52,8 +54,8 @@ def figure_scene(n: int, seed: int = 0, sh_degree: int = 3, dtype=torch.float32)
                           torch.zeros(n, dtype=torch.float64), torch.sin(spin / 2)], -1)
     quats = _qmul(q_align, q_spin)
     spacing = math.sqrt(float(area.sum()) / n)
-    # Trained avatars overlap their neighbours: discs ~1.5x the spacing, log-normal spread.
-    tang = 1.5 * spacing * torch.exp(0.4 * torch.randn(n, 2, generator=g, dtype=torch.float64))
+    # Trained avatars overlap their neighbours, hence discs wider than the spacing by default.
+    tang = disc_scale * spacing * torch.exp(0.4 * torch.randn(n, 2, generator=g, dtype=torch.float64))
     scales = torch.cat([tang, 0.15 * tang[:, :1]], -1)
     opacities = torch.sigmoid(2.0 + 1.5 * torch.randn(n, generator=g, dtype=torch.float64))
     # Skin-and-cloth palette varied per part, plus noise.
