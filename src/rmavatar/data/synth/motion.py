@@ -40,7 +40,8 @@ def _wave(rng: np.random.Generator, t: np.ndarray, amp: float, periods=(0.6, 1.6
 
 
 def yaw_rotvec(yaw: np.ndarray) -> np.ndarray:
-    """Axis-angle [N,3] of rotations about the world's y axis."""
+    """Axis-angle [N,3] of rotations about the world's y axis, the angle wrapped into [-pi, pi)."""
+    yaw = np.mod(yaw + np.pi, 2 * np.pi) - np.pi
     return np.stack([np.zeros_like(yaw), yaw, np.zeros_like(yaw)], 1)
 
 
