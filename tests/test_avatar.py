@@ -249,6 +249,45 @@ def test_rectifier_shapes_and_fast_path_matches_plain_mlp():
         r(mu, torch.zeros(72, dtype=torch.float64))
 
 
+def test_fused_backward_matches_autograd_of_the_plain_mlp():
+    gen = torch.Generator().manual_seed(8)
+    r = Rectifier().double()
+    with torch.no_grad():
+        r.l5.weight.normal_(0, 0.1, generator=gen)
+    r.set_frequency_alpha(4.3)
+    mu = torch.randn(200, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    pose = torch.randn(69, generator=gen, dtype=torch.float64, requires_grad=True)
+    wts = [torch.randn(200, k, generator=gen, dtype=torch.float64) for k in (3, 3, 4)]
+    inputs = [mu, pose, *r.parameters()]
+    fast = torch.autograd.grad(sum((o * w).sum() for o, w in zip(r(mu, pose), wts)), inputs)
+    ref = torch.autograd.grad(sum((o * w).sum() for o, w in zip(r.reference_forward(mu, pose), wts)), inputs)
+    for a, b in zip(fast, ref):
+        assert torch.allclose(a, b, atol=1e-12)
+    small_mu = mu[:2].detach().requires_grad_()
+    assert torch.autograd.gradcheck(lambda m, p: r(m, p), (small_mu, pose))
+
+
+def test_bfloat16_rectifier_is_close_to_float32():
+    gen = torch.Generator().manual_seed(9)
+    r32 = Rectifier()
+    with torch.no_grad():
+        r32.l5.weight.normal_(0, 0.05, generator=gen)
+    r16 = Rectifier(precision="bfloat16")
+    r16.load_state_dict(r32.state_dict())
+    mu = torch.randn(2000, 3, generator=gen) * 0.5
+    pose = torch.randn(69, generator=gen) * 0.3
+    a, b = torch.cat(r32(mu, pose), -1), torch.cat(r16(mu, pose), -1)
+    assert b.dtype == torch.float32
+    assert (a - b).abs().max() < 0.03 * a.abs().max()
+    ga = torch.autograd.grad(a.square().sum(), list(r32.parameters()))
+    gb = torch.autograd.grad(b.square().sum(), list(r16.parameters()))
+    for x, y in zip(ga, gb):
+        assert y.dtype == torch.float32
+        assert torch.linalg.vector_norm(x - y) < 0.05 * torch.linalg.vector_norm(x)
+    with pytest.raises(ValueError):
+        Rectifier(precision="float16")
+
+
 def test_rectifier_starts_as_identity_and_is_deterministic():
     v, f = sphere()
     gen = torch.Generator().manual_seed(5)

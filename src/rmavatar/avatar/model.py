@@ -35,6 +35,9 @@ class AvatarConfig:
     rectifier: bool = True  # False = the paper's "w/o GauRec": Gaussians fixed to their faces
     num_freqs: int = 6
     hidden: int = 128
+    # Arithmetic of the rectifier's hidden layers: "bfloat16" runs its GEMMs ~4x faster on CPUs with
+    # bf16 dot products (AVX512-BF16 / AMX) at ~3 significant digits; outputs and gradients stay float32.
+    rectifier_precision: str = "float32"
     init_opacity: float = 0.1
     init_color: tuple[float, float, float] = (0.5, 0.5, 0.5)
     placement: str = "face"
@@ -59,6 +62,8 @@ class AvatarConfig:
             raise UserError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
         if self.num_freqs < 1:
             raise UserError(f"num_freqs must be >= 1, got {self.num_freqs}")
+        if self.rectifier_precision not in ("float32", "bfloat16"):
+            raise UserError(f"rectifier_precision must be 'float32' or 'bfloat16', got {self.rectifier_precision!r}")
         self.init_color = tuple(float(c) for c in self.init_color)
         if len(self.init_color) != 3:
             raise UserError(f"init_color must have 3 values, got {self.init_color}")
@@ -168,7 +173,7 @@ class Avatar(nn.Module):
         self.opacity_logits = nn.Parameter(torch.full((n,), math.log(p / (1 - p))))
         self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).unsqueeze(1))
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
-        self.rectifier = Rectifier(config.num_freqs, config.hidden) if config.rectifier else None
+        self.rectifier = Rectifier(config.num_freqs, config.hidden, precision=config.rectifier_precision) if config.rectifier else None
 
     # ------------------------------------------------------------------ construction
     @classmethod
