@@ -258,3 +258,17 @@ def test_numba_cache_goes_to_rmavatar_cache(tmp_path):
     env["NUMBA_CACHE_DIR"] = str(tmp_path / "mine")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(tmp_path / "mine")
+
+
+def test_needles_and_giants():
+    """Extremely thin and very large Gaussians: exact in float64, finite in float32."""
+    params, viewmat, K, w, h = _scene(6, 17)
+    params["scales"] = torch.tensor(
+        [[3.0, 1e-6, 1e-6], [1e-6, 2.0, 1e-6], [1e-7, 1e-7, 5.0], [50.0, 40.0, 1e-3], [1e-3, 1e-3, 1e-3], [0.3, 1e-5, 0.2]],
+        dtype=F64)
+    params["means"][:, 2] = torch.linspace(-1, 1, 6, dtype=F64)
+    _compare(params, viewmat, K, w, h)
+    p32 = {k: v.float() for k, v in params.items()}
+    img, alpha, _ = rasterize(p32["means"], p32["quats"], p32["scales"], p32["opacities"], p32["colors"],
+                              viewmat.float(), K.float(), w, h, background=p32["background"])
+    assert torch.isfinite(img).all() and torch.isfinite(alpha).all()

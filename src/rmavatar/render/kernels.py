@@ -71,7 +71,10 @@ def bin_tiles(means2d, radii_xy, order, tiles_x, tiles_y):
 @numba.njit(cache=True, inline="always")
 def _row_span(py0, th, my, a, b, c, smax):
     """Tile rows [y0, y1) that can hold pixels with sigma <= smax (plus one row of slack)."""
-    ry = math.sqrt(2.0 * smax * a / (a * c - b * b))  # y half-extent of the ellipse
+    det = a * c - b * b
+    if not det > 0.0:  # rounding on an extremely thin Gaussian: scan the whole tile
+        return py0, py0 + th
+    ry = math.sqrt(2.0 * smax * a / det)  # y half-extent of the ellipse
     y0 = max(py0, int(math.ceil(my - ry - 0.5)) - 1) if my - ry > py0 else py0
     y1 = min(py0 + th, int(math.floor(my + ry - 0.5)) + 2) if my + ry < py0 + th else py0 + th
     return y0, y1

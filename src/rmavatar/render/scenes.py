@@ -28,8 +28,8 @@ def figure_scene(
     n: int, seed: int = 0, sh_degree: int | None = 3, dtype=torch.float32, disc_scale: float = 1.5
 ) -> dict[str, Tensor]:
     """``n`` surface Gaussians on a 1.8 m figure at the origin, sized like a trained avatar's:
-    flat discs whose standard deviation is ``disc_scale`` times the point spacing (log-normal spread). Returns means, quats, scales, opacities and
-    colors ([N,3] if sh_degree is None, else SH [N,(d+1)^2,3])."""
+    flat discs whose standard deviation is ``disc_scale`` times the point spacing (log-normal
+    spread). Returns means, quats, scales, opacities and colors ([N,3] if sh_degree is None, else SH [N,(d+1)^2,3])."""
     g = torch.Generator().manual_seed(seed)
     centres = torch.tensor([p[0] for p in _PARTS], dtype=torch.float64)
     radii = torch.tensor([p[1] for p in _PARTS], dtype=torch.float64)
