@@ -10,15 +10,21 @@ import sys
 
 from rmavatar.utils import cache_dir
 
-if not os.environ.get("NUMBA_CACHE_DIR"):
-    _dir = str(cache_dir("numba"))
-    if "numba" in sys.modules:  # imported earlier by someone else: set the live config instead
-        import numba.core.config as _config
 
-        if not _config.CACHE_DIR:
-            _config.CACHE_DIR = _dir
+def _configure_cache() -> None:
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    path = str(cache_dir("numba"))
+    if "numba" in sys.modules:  # imported earlier by someone else: set the live config instead
+        import numba.core.config as config
+
+        if not config.CACHE_DIR:
+            config.CACHE_DIR = path
     else:
-        os.environ["NUMBA_CACHE_DIR"] = _dir
+        os.environ["NUMBA_CACHE_DIR"] = path
+
+
+_configure_cache()
 
 import numba  # noqa: E402
 
