@@ -69,9 +69,10 @@ class Shot:
     split: str
 
 
-def plan(cfg: SynthConfig) -> list[Shot]:
+def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52)) -> list[Shot]:
     """The frames in output order: train, test (the turn's contiguous tail, as in PeopleSnapshot),
-    novel_pose, then novel_view. Poses are noise-free. Deterministic for ``cfg.seed``."""
+    novel_pose, then novel_view. Poses are noise-free. Deterministic for ``cfg.seed``.
+    ``body_y``: the standing body's lowest and highest y (m), for framing."""
     from rmavatar.data.synth.motion import look_at, novel_motion, turn_motion
 
     rng = np.random.default_rng([cfg.seed, 1])
@@ -79,11 +80,12 @@ def plan(cfg: SynthConfig) -> list[Shot]:
     turn = turn_motion(n_turn, cfg.turns, rng)
     novel = novel_motion(max(cfg.novel_pose, 1), rng)
     S = cfg.size
-    # Framing: 2.1 m of height fill 90% of the image at the person's distance (room for raised arms).
-    f = S * 0.9 * cfg.distance / 2.1
+    # Framing: 115% of the body's height (room for raised arms) fill 90% of the image.
+    lo, hi = body_y
+    f = S * 0.9 * cfg.distance / (1.15 * (hi - lo))
     K = np.array([[f, 0.0, S / 2], [0.0, f, S / 2], [0.0, 0.0, 1.0]])
-    target = np.array([0.0, -0.40, 0.0])  # about the middle of the standing body
-    eye = np.array([0.0, -0.30, cfg.distance])
+    target = np.array([0.0, 0.5 * (lo + hi), 0.0])
+    eye = target + np.array([0.0, 0.1, cfg.distance])
     main = look_at(eye, target)
     shots = []
     for i in range(n_turn):
@@ -125,7 +127,8 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict
         raise UserError(f"{out} exists and is not an rmavatar dataset; refusing to replace it")
     body = load_body_model(f"anny:{cfg.preset}")
     subject = build_subject(body, cfg.seed)
-    shots = plan(cfg)
+    ys = body.v_template[:, 1]
+    shots = plan(cfg, (float(ys.min()), float(ys.max())))
     n = len(shots)
     true = {k: np.stack([getattr(s, k) for s in shots]) for k in ("global_orient", "body_pose", "transl")}
     with torch.no_grad():
