@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", metavar="RUN", help="training run folder (holds checkpoints/last.pt)")
     parser.add_argument("--json", required=True, metavar="OUT", help="where to write the results (JSON)")
     parser.add_argument("--data", metavar="DATA", help="dataset to evaluate on (default: the run's own)")
-    parser.add_argument("--split", default="test", choices=["test", "novel_pose", "val", "train"],
-                        help="which frames (default: test)")
+    parser.add_argument("--split", default="test",
+                        help="which frames: test (default), novel_pose, val, novel_view, train, or any split "
+                             "the dataset has")
     parser.add_argument("--bg", default="white", choices=["white", "black"],
                         help="background behind render and ground truth (default: white, as InstantAvatar "
                              "and the SplattingAvatar family report on PeopleSnapshot)")

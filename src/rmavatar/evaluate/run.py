@@ -22,7 +22,6 @@ from rmavatar import __version__
 from rmavatar.utils import UserError, atomic_dir
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-SPLITS = ("test", "novel_pose", "val", "train")
 # The error heat map spans mean absolute error 0 .. HEAT_MAX (per pixel, averaged over RGB).
 HEAT_MAX = 0.25
 # Marker that makes an images folder recognisably ours, so a re-run may replace it.
@@ -90,7 +89,7 @@ def evaluate_run(
     """Render every frame of ``split`` with the run's avatar and score it against the ground truth.
 
     run_dir: a training run (``RUN/checkpoints/last.pt``); data: dataset spec (default: the run's own);
-    split: "test", "novel_pose", "val" or "train"; bg: "white" or "black"; size: longer image side in
+    split: a split of the dataset ("test", "novel_pose", "val", "novel_view", "train"); bg: "white" or "black"; size: longer image side in
     pixels (default: the size the run was trained at; None there means the dataset's own);
     out_dir: where to write side-by-side images (render | ground truth | error heat map) and a copy of
     the result (``metrics.json``), or None for no images; replaced atomically, and only if it is empty
@@ -109,8 +108,6 @@ def evaluate_run(
 
     if bg not in BACKGROUNDS:
         raise UserError(f"background must be one of {', '.join(BACKGROUNDS)}, not {bg!r}")
-    if split not in SPLITS:
-        raise UserError(f"split must be one of {', '.join(SPLITS)}, not {split!r}")
     if size is not None and size < 32:
         raise UserError(f"size must be at least 32 pixels (LPIPS needs 32x32), got {size}")
     if max_frames is not None and max_frames < 1:
