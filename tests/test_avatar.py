@@ -363,3 +363,44 @@ def test_state_dict_round_trip_with_a_different_count():
     assert b.num_gaussians == 333 and float(b.rectifier.freq_alpha) == 2.0
     pose = torch.randn(69)
     assert torch.equal(a(v, pose).means, b(v, pose).means)
+
+
+class _Body:
+    def __init__(self, v, f):
+        self.v_template, self.faces, self.binding_faces = v, f, torch.arange(f.shape[0] - 3)
+
+
+def test_checkpoint_state_round_trip_and_body_check():
+    v, f = sphere()
+    body = _Body(v, f)
+    a = Avatar.from_body(body, AvatarConfig(placement="area", num_gaussians=200, sh_degree=2))
+    assert a.num_gaussians == 200 and int(a.face_ids.max()) < f.shape[0] - 3
+    a.set_progress(700, 1000)
+    state = a.checkpoint_state()
+    b = Avatar.from_state(body, state)
+    assert b.config == a.config and b.num_gaussians == 200
+    pose = torch.randn(69)
+    ga, gb = a(v, pose), b(v, pose)
+    assert torch.equal(ga.means, gb.means) and torch.equal(ga.sh, gb.sh)
+    other = _Body(*sphere())
+    other.faces = torch.flip(other.faces, dims=[1])
+    with pytest.raises(UserError, match="different body mesh"):
+        Avatar.from_state(other, state)
+    with pytest.raises(UserError):
+        Avatar.from_state(body, {"weights": 1})
+
+
+def test_set_progress_schedules():
+    v, f = sphere()
+    a = Avatar(f, None, v, AvatarConfig(sh_degree=3, c2f_start=0.1, c2f_end=0.5))
+    a.set_progress(0, 1000)
+    assert int(a.active_sh_degree) == 0 and float(a.rectifier.freq_alpha) == 0.0
+    a.set_progress(300, 1000)  # SH every 20 iterations; window half open
+    assert int(a.active_sh_degree) == 3 and float(a.rectifier.freq_alpha) == pytest.approx(3.0)
+    a.set_progress(10, 1000)
+    assert int(a.active_sh_degree) == 0
+    a.set_progress(1000, 1000)
+    assert float(a.rectifier.freq_alpha) == 6.0
+    b = Avatar(f, None, v, AvatarConfig(coarse_to_fine=False))
+    b.set_progress(0, 1000)
+    assert float(b.rectifier.freq_alpha) == 6.0

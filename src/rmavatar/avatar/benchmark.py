@@ -1,0 +1,82 @@
+"""Time the avatar's forward + backward (posing + rectifier), the part of a training step it owns.
+
+    python -m rmavatar.avatar.benchmark --gaussians 25000 --repeats 20 [--threads 2] [--body anny]
+
+Prints one JSON object: median / min wall seconds and median process CPU seconds per step, for the
+rectifier in float32 and bfloat16 and without a rectifier. The machine's other load shows in the
+wall times; CPU seconds (summed over threads) are steadier on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+
+
+def _mesh(body_spec: str | None):
+    if body_spec:
+        from rmavatar.body import load_body_model
+
+        body = load_body_model(body_spec)
+        pose = torch.zeros(1, 69)
+        verts = body(None, torch.zeros(1, 3), pose, torch.zeros(1, 3)).vertices[0]
+        return body.faces, body.binding_faces, body.v_template, verts
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    v = torch.tensor(m.vertices, dtype=torch.float32)
+    return torch.tensor(m.faces), None, v, v * 1.01
+
+
+def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats: int = 20, warmup: int = 3) -> dict:
+    """Seconds per forward + backward of ``avatar(vertices, body_pose)`` with a loss over all outputs."""
+    walls, cpus = [], []
+    for i in range(warmup + repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        g = avatar(vertices, body_pose)
+        loss = g.means.sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.sum()
+        if g.offsets is not None:
+            loss = loss + sum(o.square().sum() for o in g.offsets)
+        loss.backward()
+        if i >= warmup:
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        avatar.zero_grad(set_to_none=True)
+    return {"wall_median_s": statistics.median(walls), "wall_min_s": min(walls),
+            "cpu_median_s": statistics.median(cpus)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from rmavatar.avatar import Avatar, AvatarConfig
+
+    p = argparse.ArgumentParser(prog="python -m rmavatar.avatar.benchmark", description=__doc__.split("\n")[0])
+    p.add_argument("--gaussians", type=int, default=25_000)
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
+    p.add_argument("--body", default=None, help="body model spec (e.g. anny); default: an icosphere mesh")
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    faces, binding, template, verts = _mesh(args.body)
+    torch.manual_seed(0)
+    pose = torch.randn(69) * 0.3
+    result = {"gaussians": args.gaussians, "threads": torch.get_num_threads(), "faces": int(faces.shape[0])}
+    for name, cfg in (
+        ("no_rectifier", AvatarConfig(rectifier=False)),
+        ("rectifier_float32", AvatarConfig()),
+        ("rectifier_bfloat16", AvatarConfig(rectifier_precision="bfloat16")),
+    ):
+        cfg.placement, cfg.num_gaussians = "area", args.gaussians
+        avatar = Avatar(faces, binding, template, cfg)
+        avatar.active_sh_degree.fill_(cfg.sh_degree)
+        result[name] = time_avatar(avatar, verts, pose, args.repeats)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
