@@ -6,6 +6,7 @@ head (as SMPL's), and the posed world rotation composes as ``G_c = G_parent @ L_
 
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import torch
@@ -29,15 +30,44 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     return eye + a * K + b * (K @ K)
 
 
+@functools.lru_cache(maxsize=16)
+def _levels(parents: tuple[int, ...]) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
+    """Joints grouped by depth: per level (after the root) the joint ids and their parents' positions
+    within the previous level, and the permutation from depth order back to joint order."""
+    children: list[list[int]] = [[] for _ in parents]
+    for j, p in enumerate(parents[1:], start=1):
+        children[p].append(j)
+    level, order = [0], [0]
+    ids, parent_pos = [], []
+    while True:
+        nxt = [c for j in level for c in children[j]]
+        if not nxt:
+            break
+        position = {j: k for k, j in enumerate(level)}
+        ids.append(torch.tensor(nxt))
+        parent_pos.append(torch.tensor([position[parents[c]] for c in nxt]))
+        order += nxt
+        level = nxt
+    if len(order) != len(parents):
+        raise ValueError("every joint must descend from joint 0")
+    return ids, parent_pos, torch.argsort(torch.tensor(order))
+
+
+def _chain(K: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
+    """``X_c = X_parent @ K_c`` down the tree, one batched product per depth level. ``K [B,J,n,n]``."""
+    ids, parent_pos, inverse = _levels(tuple(int(p) for p in parents))
+    X = [K[:, :1]]
+    for level_ids, pos in zip(ids, parent_pos):
+        X.append(X[-1][:, pos.to(K.device)] @ K[:, level_ids.to(K.device)])
+    return torch.cat(X, 1)[:, inverse.to(K.device)]
+
+
 def global_rotations(local: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
     """Compose local rotations down a chain. ``local [B,J,3,3]`` -> world ``[B,J,3,3]``.
 
-    ``parents[j] < j`` for every non-root joint; the root's parent is negative.
+    The root's parent is negative; every other joint descends from joint 0.
     """
-    out = [local[:, 0]]
-    for j in range(1, local.shape[1]):
-        out.append(out[parents[j]] @ local[:, j])
-    return torch.stack(out, 1)
+    return _chain(local, parents)
 
 
 def lbs(
@@ -52,9 +82,10 @@ def lbs(
     Args:
         rest_vertices: ``[B,V,3]`` (or ``[1,V,3]``, broadcast) rest vertices, pose blend shapes already added.
         rest_joints: ``[B,J,3]`` (or ``[1,J,3]``) rest joint (bone head) positions.
-        parents: ``J`` parent indices, ``parents[j] < j``, the root's negative.
+        parents: ``J`` parent indices, the root's negative.
         rotations: ``[B,J,3,3]`` local rotations about each joint in world-aligned axes.
-        weights: ``[V,J]`` skinning weights (rows sum to 1).
+        weights: ``[V,J]`` skinning weights (rows sum to 1); dense, which beats gathering Anny's 9 bones
+            per vertex on CPU.
 
     Returns:
         vertices ``[B,V,3]``, posed joints ``[B,J,3]``, and the bone transforms ``[B,J,4,4]`` that map
@@ -62,21 +93,22 @@ def lbs(
     """
     B, J = rotations.shape[:2]
     rest_joints = rest_joints.expand(B, -1, -1)
-    G = global_rotations(rotations, parents)
-    # Posed joint c = posed parent + G_parent (rest offset): the chain SMPL and Anny's local-ref share.
-    posed = [rest_joints[:, 0]]
-    for j in range(1, J):
-        p = parents[j]
-        offset = rest_joints[:, j] - rest_joints[:, p]
-        posed.append(posed[p] + (G[:, p] @ offset[..., None])[..., 0])
-    joints = torch.stack(posed, 1)
+    # Rigid chain W_c = W_parent [L_c | h_c - h_parent] gives W_c = [G_c | posed joint c]: the chain
+    # SMPL and Anny's local-ref parameterisation share.
+    parent_idx = torch.tensor([0] + [int(p) for p in parents[1:]], device=rest_joints.device)
+    offsets = torch.cat([rest_joints[:, :1], rest_joints[:, 1:] - rest_joints[:, parent_idx[1:]]], 1)
+    bottom = torch.zeros(B, J, 1, 4, dtype=rotations.dtype, device=rotations.device)
+    bottom[..., 0, 3] = 1.0
+    K = torch.cat([torch.cat([rotations, offsets[..., None]], -1), bottom], -2)
+    W = _chain(K, parents)
+    G, joints = W[..., :3, :3], W[..., :3, 3]
     t = joints - (G @ rest_joints[..., None])[..., 0]
     T = torch.cat([G, t[..., None]], -1)  # [B,J,3,4]
-    blended = (weights @ T.reshape(B, J, 12)).reshape(B, -1, 3, 4)  # [B,V,3,4]
+    # one [V,J] @ [J,B*12] product: a broadcast batched matmul would copy the weights B times
+    blended = (weights @ T.reshape(B, J, 12).permute(1, 0, 2).reshape(J, B * 12)).reshape(-1, B, 3, 4)
+    blended = blended.permute(1, 0, 2, 3)  # [B,V,3,4]
     verts = rest_vertices.expand(B, -1, -1)
-    vertices = (blended[..., :3] @ verts[..., None])[..., 0] + blended[..., 3]
-    bottom = torch.zeros(B, J, 1, 4, dtype=T.dtype, device=T.device)
-    bottom[..., 0, 3] = 1.0
+    vertices = (blended[..., :3] * verts[:, :, None, :]).sum(-1) + blended[..., 3]
     return vertices, joints, torch.cat([T, bottom], -2)
 
 
