@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="render a posed body to a PNG (front and side views)",
         description="Render a body model in a pose (T-pose, A-pose, or a frame of a motion file) to a PNG: "
         "front and side views, flat-shaded, joints as red dots.",
-        epilog=__doc__.split("Examples::")[1],
+        epilog="examples:" + __doc__.split("Examples::")[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     show.add_argument("--body", default="anny", help="anny, anny:PRESET (neutral, male, female, child) or "

@@ -36,7 +36,7 @@ class Motion:
 
 def load_motion(path: str | Path) -> Motion:
     """Read a motion file (see the module docstring for the formats)."""
-    path = Path(path)
+    path = Path(path).expanduser()
     if not path.is_file():
         raise UserError(f"motion file {path} does not exist")
     try:

@@ -175,7 +175,7 @@ def read_smpl_file(path: str | Path) -> dict[str, np.ndarray]:
 
 def find_smpl_file(path: str | Path, gender: str | None) -> Path:
     """A file as given, or in a folder the file of ``gender`` (neutral when None)."""
-    path = Path(path)
+    path = Path(path).expanduser()
     if path.is_file():
         return path
     if not path.is_dir():
