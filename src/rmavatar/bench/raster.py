@@ -102,26 +102,43 @@ def _measure(fn_forward, repeats: int, warmup: int, sync, memory: bool) -> dict:
     def timed(f):
         for _ in range(warmup):
             f()
-        ts = []
+        wall, cpu = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             f()
-            ts.append(time.perf_counter() - t0)
-        return ts
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        return wall, cpu
 
-    t_f = timed(fwd)
-    t_fb = timed(fwd_bwd)
+    t_f, c_f = timed(fwd)
+    t_fb, c_fb = timed(fwd_bwd)
     out = {
         "forward_s": statistics.median(t_f),
         "forward_backward_s": statistics.median(t_fb),
         "forward_s_min": min(t_f),
         "forward_backward_s_min": min(t_fb),
+        # CPU seconds of this process summed over its threads: less sensitive to other load.
+        "forward_cpu_s": statistics.median(c_f),
+        "forward_backward_cpu_s": statistics.median(c_fb),
     }
     if memory:
+        _release_free_memory()
         with _PeakRSS() as mem:
             fwd_bwd()
         out["peak_rss_growth_mb"] = (mem.peak - mem.start) / 2**20
     return out
+
+
+def _release_free_memory() -> None:
+    """Hand freed heap pages back to the OS (glibc), so RSS growth counts the next call's memory."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _scene(n: int, size: int, sh_degree: int, device: str, disc_scale: float):
@@ -199,7 +216,8 @@ def run(args: argparse.Namespace) -> int:
         results.append(row)
         print(
             f"N={n:>6} {size}x{size}: forward {row['forward_s'] * 1e3:7.1f} ms, forward+backward "
-            f"{row['forward_backward_s'] * 1e3:7.1f} ms, peak RSS +{row['peak_rss_growth_mb']:.0f} MB, "
+            f"{row['forward_backward_s'] * 1e3:7.1f} ms (CPU {row['forward_backward_cpu_s'] * 1e3:.0f} ms), "
+            f"peak RSS +{row['peak_rss_growth_mb']:.0f} MB, "
             f"{row['gaussians_per_s_forward_backward'] / 1e3:.0f}k Gaussians/s (fwd+bwd)",
             flush=True,
         )
@@ -233,8 +251,8 @@ def run(args: argparse.Namespace) -> int:
                  f"figure, 3 m away, SH degree {args.sh_degree}, white background, "
                  "loss = sum(w * image) + sum(alpha)",
         "timing": f"median of {args.repeats} runs after {args.warmup} warm-up runs, wall clock",
-        "memory": "peak_rss_growth_mb: growth of the process's resident set during one forward+backward, "
-                  "polled every 1 ms from /proc/self/statm",
+        "memory": "peak_rss_growth_mb: growth of the process's resident set during one forward+backward "
+                  "after a warm-up and malloc_trim, polled every 1 ms from /proc/self/statm",
         "machine": {
             "cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
             "torch_threads": torch.get_num_threads(), "numba": numba.__version__,
