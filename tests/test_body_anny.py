@@ -10,8 +10,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from rmavatar.body import load_body_model, load_motion
-from rmavatar.body.anny import ANNY_TO_SMPL, PRESETS, SMPL_REST_JOINTS, _AIM_CHILD
-from rmavatar.body.base import SMPL_PARENTS
+from rmavatar.body.anny import ANNY_TO_SMPL, PRESETS, _AIM_CHILD
+from rmavatar.body.base import SMPL_PARENTS, SMPL_REST_JOINTS
 
 MOTIONS = Path(__file__).resolve().parents[2] / "shared" / "data" / "motions"
 

@@ -29,13 +29,24 @@ def test_aist_npz(tmp_path):
 
 def test_amass_npz(tmp_path):
     rng = np.random.default_rng(1)
-    poses = rng.normal(size=(4, 156))
-    np.savez(tmp_path / "amass.npz", poses=poses, trans=np.ones((4, 3)), betas=np.arange(16.0),
+    poses, trans = rng.normal(size=(4, 156)), rng.normal(size=(4, 3))
+    np.savez(tmp_path / "amass.npz", poses=poses, trans=trans, betas=np.arange(16.0),
              mocap_framerate=np.array(120.0), gender="female")  # fmt: skip
-    m = load_motion(tmp_path / "amass.npz")
+    m = load_motion(tmp_path / "amass.npz", keep_up=True)
     assert m.fps == 120.0 and m.betas.shape == (10,) and m.body_pose.shape == (4, 69)
     np.testing.assert_allclose(m.body_pose[:, :63], poses[:, 3:66], rtol=1e-6)
     assert (m.body_pose[:, 63:] == 0).all()  # SMPL's hand joints stay at rest
+    np.testing.assert_allclose(m.global_orient, poses[:, :3], rtol=1e-6)
+    # Z-up -> y-up: the whole posed body turns -90 degrees about x, about the world origin
+    y_up = load_motion(tmp_path / "amass.npz")
+    np.testing.assert_allclose(y_up.body_pose, m.body_pose)
+    body = load_body_model("anny")
+    with torch.no_grad():
+        z = body(None, torch.from_numpy(m.global_orient), torch.from_numpy(m.body_pose), torch.from_numpy(m.transl))
+        y = body(None, torch.from_numpy(y_up.global_orient), torch.from_numpy(y_up.body_pose),
+                 torch.from_numpy(y_up.transl))  # fmt: skip
+    turn = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # -90 degrees about x: z -> y
+    assert (y.vertices - z.vertices @ turn.T).abs().max() < 1e-4
 
 
 def test_gart_npy(tmp_path):

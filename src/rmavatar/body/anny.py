@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rmavatar.body.base import SMPL_PARENTS, BodyModel, BodyOutput, check_pose_inputs
+from rmavatar.body.base import SMPL_PARENTS, SMPL_REST_JOINTS, BodyModel, BodyOutput, check_pose_inputs
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
 from rmavatar.utils import UserError, atomic_path, cache_dir
 
@@ -42,17 +42,6 @@ TEMPLATE_VERSION = 1
 
 # Anny (x, y, z) -> SMPL (x, z, -y): Z-up/-Y-forward to Y-up/+Z-forward, x (body's left) kept.
 ANNY_TO_SMPL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-
-# A typical SMPL neutral rest skeleton (joint positions in metres, rounded). Only its bone directions
-# (which define SMPL's T-pose) and its pelvis / hip centre (where SMPL's body sits) are used.
-SMPL_REST_JOINTS = np.array([
-    [0.000, -0.223, 0.028], [0.070, -0.314, 0.024], [-0.068, -0.314, 0.021], [-0.003, -0.104, 0.012],
-    [0.104, -0.704, 0.018], [-0.106, -0.701, 0.013], [0.005, 0.025, 0.026], [0.088, -1.115, -0.035],
-    [-0.088, -1.115, -0.036], [0.005, 0.078, 0.028], [0.120, -1.172, 0.085], [-0.120, -1.172, 0.085],
-    [-0.002, 0.289, -0.015], [0.077, 0.194, -0.006], [-0.080, 0.193, -0.010], [0.005, 0.355, 0.038],
-    [0.172, 0.226, -0.017], [-0.173, 0.225, -0.019], [0.433, 0.213, -0.040], [-0.429, 0.212, -0.041],
-    [0.682, 0.222, -0.043], [-0.688, 0.219, -0.045], [0.767, 0.215, -0.057], [-0.769, 0.216, -0.058],
-])  # fmt: skip
 
 # The Anny bone standing for each SMPL joint (its head is that joint's position).
 SMPL_TO_ANNY = (

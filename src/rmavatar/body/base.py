@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from rmavatar.utils import UserError
-
-NUM_SMPL_JOINTS = 24
 
 # SMPL's kinematic tree (parent of each of the 24 joints); it is the same in every SMPL file.
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
@@ -19,6 +18,17 @@ SMPL_JOINT_NAMES = (
     "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
     "left_hand", "right_hand",
 )  # fmt: skip
+
+# A typical SMPL neutral rest skeleton (joint positions in metres, rounded). Only its bone directions
+# (which define SMPL's T-pose) and its pelvis / hip centre (where SMPL's body sits) are used.
+SMPL_REST_JOINTS = np.array([
+    [0.000, -0.223, 0.028], [0.070, -0.314, 0.024], [-0.068, -0.314, 0.021], [-0.003, -0.104, 0.012],
+    [0.104, -0.704, 0.018], [-0.106, -0.701, 0.013], [0.005, 0.025, 0.026], [0.088, -1.115, -0.035],
+    [-0.088, -1.115, -0.036], [0.005, 0.078, 0.028], [0.120, -1.172, 0.085], [-0.120, -1.172, 0.085],
+    [-0.002, 0.289, -0.015], [0.077, 0.194, -0.006], [-0.080, 0.193, -0.010], [0.005, 0.355, 0.038],
+    [0.172, 0.226, -0.017], [-0.173, 0.225, -0.019], [0.433, 0.213, -0.040], [-0.429, 0.212, -0.041],
+    [0.682, 0.222, -0.043], [-0.688, 0.219, -0.045], [0.767, 0.215, -0.057], [-0.769, 0.216, -0.058],
+])  # fmt: skip
 
 
 @dataclass

@@ -5,7 +5,8 @@ Formats read:
 - AIST++ / InstantAvatar ``.npz``: ``poses (N,72)`` (global orient + 23 joints), ``trans (N,3)``,
   optional ``betas``, ``fps`` / ``mocap_framerate``.
 - AMASS ``.npz``: ``poses (N,156)`` SMPL-H (or (N,165) SMPL-X); the first 66 values are SMPL's body
-  joints, SMPL's two hand joints are set to zero; ``trans``, ``betas``, ``mocap_framerate``.
+  joints, SMPL's two hand joints are set to zero; ``trans``, ``betas``, ``mocap_framerate``. AMASS is
+  Z-up: it is turned to SMPL's y-up (-90 degrees about x, about the origin) unless ``keep_up=True``.
 - GART-style ``.npy``: an ``(N,72)`` array of poses, no translation (zeros), no frame rate.
 """
 
@@ -34,8 +35,11 @@ class Motion:
         return len(self.global_orient)
 
 
-def load_motion(path: str | Path) -> Motion:
-    """Read a motion file (see the module docstring for the formats)."""
+def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
+    """Read a motion file (see the module docstring for the formats).
+
+    ``keep_up``: leave AMASS sequences Z-up instead of turning them y-up.
+    """
     path = Path(path).expanduser()
     if not path.is_file():
         raise UserError(f"motion file {path} does not exist")
@@ -44,6 +48,7 @@ def load_motion(path: str | Path) -> Motion:
     except Exception as exc:
         raise UserError(f"cannot read motion file {path}: {exc}") from exc
     trans = betas = fps = None
+    amass = False
     if isinstance(data, np.ndarray):
         poses = data
     else:
@@ -53,6 +58,7 @@ def load_motion(path: str | Path) -> Motion:
             poses = data["poses"]
             trans = data["trans"] if "trans" in data.files else data.get("transl")
             betas = data["betas"] if "betas" in data.files else None
+            amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
             for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
                 if key in data.files:
                     fps = float(np.asarray(data[key]).reshape(-1)[0])
@@ -65,6 +71,7 @@ def load_motion(path: str | Path) -> Motion:
             f"motion file {path}: poses must have shape (N, 72) (SMPL, 24 joints x 3) or (N, 156) / (N, 165) "
             f"(AMASS SMPL-H / SMPL-X), got {poses.shape}"
         )
+    amass = amass or poses.shape[1] != 72
     if poses.shape[1] != 72:  # SMPL-H/X: keep the 22 body joints, SMPL's two hand joints stay at rest
         poses = np.concatenate([poses[:, :66], np.zeros((len(poses), 6))], 1)
     if not np.isfinite(poses).all():
@@ -80,6 +87,8 @@ def load_motion(path: str | Path) -> Motion:
         raise UserError(f"motion file {path}: trans contains NaN/inf")
     if betas is not None:
         betas = np.asarray(betas, dtype=np.float32).reshape(-1)[:10]
+    if amass and not keep_up:
+        poses, trans = _z_up_to_y_up(poses, trans)
     return Motion(
         global_orient=poses[:, :3].astype(np.float32),
         body_pose=poses[:, 3:72].astype(np.float32),
@@ -87,3 +96,20 @@ def load_motion(path: str | Path) -> Motion:
         betas=betas,
         fps=fps,
     )
+
+
+def _z_up_to_y_up(poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Turn a sequence by -90 degrees about x (Z-up -> y-up), about the world origin.
+
+    SMPL rotates about the rest pelvis J0, so the translation becomes ``R (t + J0) - J0``; J0 depends on
+    the body shape, and a typical one is used (the error is (R - I) times the shape's J0 difference, mm).
+    """
+    from scipy.spatial.transform import Rotation
+
+    from rmavatar.body.base import SMPL_REST_JOINTS
+
+    turn = Rotation.from_euler("x", -90, degrees=True)
+    poses = poses.copy()
+    poses[:, :3] = (turn * Rotation.from_rotvec(poses[:, :3])).as_rotvec()
+    J0 = SMPL_REST_JOINTS[0]
+    return poses, turn.apply(trans + J0) - J0
