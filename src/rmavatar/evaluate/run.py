@@ -89,8 +89,9 @@ def evaluate_run(
     """Render every frame of ``split`` with the run's avatar and score it against the ground truth.
 
     run_dir: a training run (``RUN/checkpoints/last.pt``); data: dataset spec (default: the run's own);
-    split: a split of the dataset ("test", "novel_pose", "val", "novel_view", "train"); bg: "white" or "black"; size: longer image side in
-    pixels (default: the size the run was trained at; None there means the dataset's own);
+    split: a split of the dataset ("test", "novel_pose", "val", "novel_view", "train");
+    bg: "white" or "black"; size: longer image side in pixels (default: the size the run was trained
+    at; None there means the dataset's own); device: "auto" (CUDA when available), "cpu", "cuda[:N]";
     out_dir: where to write side-by-side images (render | ground truth | error heat map) and a copy of
     the result (``metrics.json``), or None for no images; replaced atomically, and only if it is empty
     or an earlier evaluation's; max_frames: evaluate only the first N frames of the split.
