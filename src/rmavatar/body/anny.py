@@ -24,9 +24,11 @@ direction, so zero SMPL pose gives a T-pose and each mapped Anny bone points whe
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -114,14 +116,33 @@ def build_template(path: Path) -> None:
         if not reuse:
             anny.paths.set_anny_cache_path(tmp)
         try:
-            model = anny.Anny(skinning_method="lbs")  # default 'anny' topology only, never smpl/smplx
-            tensors, meta = _template_arrays(model, get_face_segmentation_mask)
+            with _heartbeat("still building the Anny template", start):
+                model = anny.Anny(skinning_method="lbs")  # default 'anny' topology only, never smpl/smplx
+                tensors, meta = _template_arrays(model, get_face_segmentation_mask)
         finally:
             anny.paths.set_anny_cache_path(existing)
     with atomic_path(path) as tmp_path:
         save_file(tensors, str(tmp_path), metadata={"rmavatar": json.dumps(meta)})
     print(f"rmavatar: Anny template ready ({time.time() - start:.0f} s, "
           f"{path.stat().st_size / 1e6:.1f} MB)", file=sys.stderr, flush=True)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _heartbeat(message: str, start: float, every: float = 15.0):
+    """Print the elapsed time every ``every`` seconds while the body runs (anny reports no progress)."""
+    stop = threading.Event()
+
+    def beat():
+        while not stop.wait(every):
+            print(f"rmavatar: {message} ({time.time() - start:.0f} s)", file=sys.stderr, flush=True)
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _template_arrays(model, get_face_segmentation_mask) -> tuple[dict[str, np.ndarray], dict]:
