@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from rmavatar.render import kernels
+from rmavatar.render._numba import numba
 
 
 def _np64(t: Tensor) -> np.ndarray:
@@ -28,6 +29,7 @@ class _Binning:
         order = vis_ids[np.argsort(d, kind="stable")].astype(np.int64)
         radii = np.ascontiguousarray(radii_xy.detach().cpu().numpy().astype(np.int64))
         self.offsets, self.ids = kernels.bin_tiles(_np64(means2d), radii, order, self.tiles_x, self.tiles_y)
+        self.tile_order = kernels.interleaved_tiles(self.tiles_x * self.tiles_y, numba.get_num_threads())
 
 
 class _Composite(torch.autograd.Function):
@@ -38,7 +40,8 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, colors, opacities, background, binning: _Binning):
         arrays = (_np64(means2d), _np64(conics), _np64(colors), _np64(opacities), _np64(background))
         image, t_final, n_last = kernels.composite_forward(
-            *arrays, binning.offsets, binning.ids, binning.width, binning.height, binning.tiles_x
+            *arrays, binning.offsets, binning.ids, binning.width, binning.height, binning.tiles_x,
+            binning.tile_order,
         )
         ctx.arrays = arrays
         ctx.binning = binning
@@ -55,7 +58,7 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, v_image, v_alpha):
         b = ctx.binning
         grads, v_bg = kernels.composite_backward(
-            *ctx.arrays, b.offsets, b.ids, b.width, b.height, b.tiles_x, ctx.t_final, ctx.n_last,
+            *ctx.arrays, b.offsets, b.ids, b.width, b.height, b.tiles_x, b.tile_order, ctx.t_final, ctx.n_last,
             _np64(v_image), _np64(v_alpha[..., 0]),
         )
         n = ctx.arrays[0].shape[0]

@@ -98,10 +98,11 @@ def _col_span(px0, tw, fy, mx, my, a, b, c, smax):
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def composite_forward(means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x):
+def composite_forward(means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x, tile_order):
     """Render. Returns image [H,W,3], final transmittance [H,W], and per pixel the count of tile-list
     entries up to and including its last contributor [H,W] (the backward starts there).
 
+    ``tile_order`` [T] is the order tiles are handed to threads (see ``interleaved_tiles``).
     Gaussian-major within a tile: each Gaussian visits only the pixels of the tile inside its
     ellipse sigma <= ln(255 opacity) (row by row, from the quadratic's roots), the pixels keep their
     running transmittance, and the tile stops once every pixel has terminated.
@@ -110,7 +111,8 @@ def composite_forward(means2d, conics, colors, opacities, background, offsets, i
     image = np.empty((height, width, 3))
     t_final = np.empty((height, width))
     n_last = np.zeros((height, width), np.int32)
-    for t in numba.prange(n_tiles):
+    for i in numba.prange(n_tiles):
+        t = tile_order[i]
         start = offsets[t]
         n = offsets[t + 1] - start
         px0 = (t % tiles_x) * TILE
@@ -175,7 +177,7 @@ def composite_forward(means2d, conics, colors, opacities, background, offsets, i
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
-    means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x,
+    means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x, tile_order,
     t_final, n_last, v_image, v_alpha,
 ):
     """Gradients of a loss given v_image [H,W,3] = dL/dimage and v_alpha [H,W] = dL/dalpha.
@@ -186,13 +188,15 @@ def composite_backward(
       dA/dalpha_i = T_final / (1 - alpha_i),  dC/dbackground = T_final,
     then alpha_i = min(0.999, o_i exp(-sigma_i)) and sigma_i = 0.5 d^T conic_i d, d = mean_i - pixel.
     Gaussian-major per tile like the forward, so each Gaussian's gradient is summed in registers.
+    ``tile_order`` [T] is the order tiles are handed to threads (see ``interleaved_tiles``).
     Returns per-intersection gradients [I,9] (dmx, dmy, da, db, dc, dr, dg, db, dopacity) and the
     background gradient [3].
     """
     n_tiles = offsets.shape[0] - 1
     grads = np.zeros((ids.shape[0], 9))
     v_bg_tiles = np.zeros((n_tiles, 3))
-    for t in numba.prange(n_tiles):
+    for i in numba.prange(n_tiles):
+        t = tile_order[i]
         start = offsets[t]
         px0 = (t % tiles_x) * TILE
         py0 = (t // tiles_x) * TILE
@@ -254,8 +258,8 @@ def composite_backward(
                     alpha = min(ALPHA_MAX, raw)
                     if alpha < ALPHA_MIN:
                         continue
-                    one_minus = 1.0 - alpha
-                    T = trans[k] / one_minus
+                    inv = 1.0 / (1.0 - alpha)
+                    T = trans[k] * inv
                     trans[k] = T
                     w = alpha * T
                     vr = v_image[py, px, 0]
@@ -264,11 +268,9 @@ def composite_backward(
                     g_r += w * vr
                     g_g += w * vg
                     g_bl += w * vb
-                    v_a = (
-                        (cr * T - behind[k, 0] / one_minus) * vr
-                        + (cg * T - behind[k, 1] / one_minus) * vg
-                        + (cbl * T - behind[k, 2] / one_minus) * vb
-                        + v_alpha[py, px] * t_final[py, px] / one_minus
+                    v_a = (cr * T * vr + cg * T * vg + cbl * T * vb) - inv * (
+                        behind[k, 0] * vr + behind[k, 1] * vg + behind[k, 2] * vb
+                        - v_alpha[py, px] * t_final[py, px]
                     )
                     behind[k, 0] += cr * w
                     behind[k, 1] += cg * w
@@ -297,6 +299,13 @@ def composite_backward(
         v_bg[1] += v_bg_tiles[t, 1]
         v_bg[2] += v_bg_tiles[t, 2]
     return grads, v_bg
+
+
+def interleaved_tiles(n_tiles: int, n_threads: int) -> np.ndarray:
+    """Tile order for the parallel loops: their static schedule gives each thread a contiguous block,
+    so interleave tiles (thread r gets tiles r, r + n_threads, ...) to spread dense regions evenly."""
+    n_threads = max(1, n_threads)
+    return np.concatenate([np.arange(r, n_tiles, n_threads) for r in range(n_threads)]).astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)
