@@ -182,15 +182,20 @@ def load_template() -> tuple[dict[str, torch.Tensor], dict]:
     from safetensors import safe_open
 
     path = template_path()
-    if not path.is_file():
-        build_template(path)
-    try:
-        with safe_open(str(path), framework="pt") as fh:
-            meta = json.loads(fh.metadata()["rmavatar"])
-            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
-    except Exception as exc:  # a damaged cache file: say which and how to fix it
-        raise UserError(f"cannot read the Anny template {path} ({exc}); delete it to rebuild it") from exc
-    return tensors, meta
+    for _ in range(2):
+        if not path.is_file():
+            build_template(path)
+        try:
+            with safe_open(str(path), framework="pt") as fh:
+                meta = json.loads(fh.metadata()["rmavatar"])
+                tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+        except Exception as exc:  # a damaged cache file: say which and how to fix it
+            raise UserError(f"cannot read the Anny template {path} ({exc}); delete it to rebuild it") from exc
+        # the presets' rest shapes are baked in: a file made with other preset values is rebuilt
+        if json.dumps(meta.get("presets"), sort_keys=True) == json.dumps(PRESETS, sort_keys=True):
+            return tensors, meta
+        path.unlink()
+    raise UserError(f"the Anny template {path} does not match this rmavatar's presets after a rebuild")
 
 
 def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
