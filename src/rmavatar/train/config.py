@@ -31,14 +31,16 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    """The avatar: body model and Gaussian/rectifier options."""
+    """The avatar: body model and Gaussian/rectifier options (see rmavatar.avatar.AvatarConfig)."""
 
     body: str | None = None  # "anny", "anny:PRESET", "smpl:PATH"; None = the dataset's own preset/gender
     gender: str | None = None  # None = the dataset's gender
     sh_degree: int = 3
     rectifier: bool = True  # False = the paper's "w/o GauRec" ablation
     coarse_to_fine: bool = True  # ramp the rectifier's encoding frequencies in over training
-    gaussians_per_area: int = 0  # >0: extra Gaussians placed by face area (total target); 0 = one per face
+    placement: str = "face"  # "face": one Gaussian per binding face (the paper); "area": num_gaussians by area
+    num_gaussians: int | None = None  # total for placement "area" (at least one per face)
+    init_opacity: float = 0.1
 
 
 @dataclass
@@ -82,7 +84,7 @@ class DensityConfig:
     reset_start: int = 10_000
     grad_threshold: float = 2e-4  # view-space position-gradient norm (3DGS rule)
     prune_opacity: float = 0.005
-    percent_dense: float = 0.01  # clone if max local scale <= this (triangle-local units), else split
+    percent_dense: float = 0.01  # clone if largest rest-pose scale <= this x the body's extent, else split
     max_gaussians: int = 0  # 0 = unlimited
 
 
@@ -111,6 +113,7 @@ class TrainConfig:
     seed: int = 0
     background: str = "white"
     threads: int = 0  # torch CPU threads; 0 = leave torch's default
+    device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
 
     def validate(self) -> "TrainConfig":
         """Raise UserError for values no run can use; returns self."""
@@ -120,6 +123,10 @@ class TrainConfig:
             raise UserError(f"iters must be >= 1, got {self.optim.iters}")
         if self.data.size is not None and self.data.size < 8:
             raise UserError(f"size must be >= 8 pixels, got {self.data.size}")
+        if self.model.placement not in ("face", "area"):
+            raise UserError(f"model.placement must be 'face' or 'area', not {self.model.placement!r}")
+        if self.model.placement == "area" and not self.model.num_gaussians:
+            raise UserError("model.placement 'area' needs model.num_gaussians")
         if not 0 <= self.model.sh_degree <= 3:
             raise UserError(f"model.sh_degree must be 0..3, got {self.model.sh_degree}")
         for name in ("progress_every", "tensorboard_every", "preview_every", "checkpoint_every", "max_bad_steps"):

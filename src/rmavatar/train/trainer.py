@@ -127,14 +127,64 @@ def posed_vertices(body, params: dict, chunk: int = 32) -> torch.Tensor:
 
 
 def build_avatar(body, cfg: TrainConfig, state: dict | None = None):
-    """The Avatar for ``body`` with the config's model options; ``state`` (from a checkpoint) restores it,
-    Gaussian count and parent faces included."""
-    from rmavatar.avatar import Avatar
+    """The Avatar for ``body`` with the config's model options; ``state`` (``Avatar.checkpoint_state()``
+    from a checkpoint) restores it, Gaussian count and parent faces included."""
+    from rmavatar.avatar import Avatar, AvatarConfig
 
-    m = cfg.model
     if state is not None:
         return Avatar.from_state(body, state)
-    return Avatar(body, sh_degree=m.sh_degree, rectifier=m.rectifier, num_gaussians=m.gaussians_per_area or None)
+    m = cfg.model
+    return Avatar.from_body(body, AvatarConfig(
+        sh_degree=m.sh_degree, rectifier=m.rectifier, coarse_to_fine=m.coarse_to_fine, placement=m.placement,
+        num_gaussians=m.num_gaussians, init_opacity=m.init_opacity, seed=cfg.seed,
+    ))
+
+
+def make_optimizer(avatar, cfg: TrainConfig) -> torch.optim.Adam:
+    """Adam over named parameter groups with the paper's learning rates (eps 1e-15).
+
+    Group order and names are fixed, so a checkpoint's optimiser state loads into a rebuilt one; the
+    "position" group's lr is set every step by :func:`position_lr`.
+    """
+    o = cfg.optim
+    groups = [
+        {"name": "position", "params": [avatar.means], "lr": o.lr_position},
+        {"name": "rotation", "params": [avatar.quats], "lr": o.lr_rotation},
+        {"name": "scaling", "params": [avatar.log_scales], "lr": o.lr_scaling},
+        {"name": "opacity", "params": [avatar.opacity_logits], "lr": o.lr_opacity},
+        {"name": "sh_dc", "params": [avatar.sh_dc], "lr": o.lr_color},
+        {"name": "sh_rest", "params": [avatar.sh_rest], "lr": o.lr_color / o.sh_rest_divisor},
+    ]
+    if avatar.rectifier is not None:
+        groups.append({"name": "rectifier", "params": list(avatar.rectifier.parameters()), "lr": o.lr_rectifier})
+    return torch.optim.Adam(groups, lr=o.lr_position, eps=o.adam_eps)
+
+
+def make_density(avatar, optimizer, cfg: TrainConfig):
+    """The density controller on the paper's schedule scaled to the run length."""
+    from rmavatar.train.density import DensityController, DensitySchedule
+
+    d = cfg.density
+    schedule = DensitySchedule.scaled(
+        cfg.optim.iters, reference_iters=d.reference_iters, start=d.start, every=d.every, stop=d.stop,
+        reset_start=d.reset_start, reset_every=d.reset_every,
+    )
+    return DensityController(
+        avatar, optimizer, schedule, grad_threshold=d.grad_threshold, prune_opacity=d.prune_opacity,
+        percent_dense=d.percent_dense, max_gaussians=d.max_gaussians, enabled=d.enabled, seed=cfg.seed,
+    )
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"device {name!r} is not a torch device (use auto, cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
+    return dev
 
 
 # ----------------------------------------------------------------------------------------------- training
@@ -256,11 +306,14 @@ class _Trainer:
         if self.ckpt is not None:
             check_body(self.ckpt["body"], self.body, str(checkpoint_path(self.run_dir)))
         self.body_info = {**body_signature(self.body), "gender": gender}
-        self.vertices = posed_vertices(self.body, params)  # [n,V,3], fixed for the whole run
-        self.body_pose = torch.as_tensor(params["body_pose"], dtype=torch.float32)  # [n,69]
+        self.device = resolve_device(cfg.device)
+        dev = self.device
+        self.body.to(dev)
+        self.vertices = posed_vertices(self.body, params).to(dev)  # [n,V,3], fixed for the whole run
+        self.body_pose = torch.as_tensor(params["body_pose"], dtype=torch.float32, device=dev)  # [n,69]
         cams = [self.dataset.camera(split, i) for i in range(n)]
-        self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32)
-        self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32)
+        self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32, device=dev)
+        self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32, device=dev)
         self.width, self.height = cams[0].width, cams[0].height
 
         torch.manual_seed(cfg.seed)
@@ -270,10 +323,10 @@ class _Trainer:
         self.sampler = FrameSampler(n, cfg.seed)
 
         state = self.ckpt["avatar"] if self.ckpt is not None else None
-        self.avatar = build_avatar(self.body, cfg, state=state)
+        self.avatar = build_avatar(self.body, cfg, state=state).to(dev)
         self.avatar.train()
         self.optimizer = make_optimizer(self.avatar, cfg)
-        self.density = make_density(self.avatar, cfg)
+        self.density = make_density(self.avatar, self.optimizer, cfg)
         self.iteration = 0
         if self.ckpt is not None:
             self.optimizer.load_state_dict(self.ckpt["optimizer"])
@@ -285,8 +338,8 @@ class _Trainer:
 
     def _frame_target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
         frame = self.dataset.frame(self.cfg.data.split, i)
-        image = torch.from_numpy(np.array(frame.image, dtype=np.float32))
-        mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32))
+        image = torch.from_numpy(np.array(frame.image, dtype=np.float32)).to(self.device)
+        mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32)).to(self.device)
         return composite_target(image, mask, bg)
 
     # --- checkpoints ------------------------------------------------------------------------------
@@ -318,16 +371,17 @@ class _Trainer:
                 group["lr"] = lr
         self.avatar.set_progress(it, cfg.optim.iters)
         i = self.sampler.next()
-        bg = background_color(cfg.background, self.bg_generator)
+        bg = background_color(cfg.background, self.bg_generator).to(self.device)
         target = self._frame_target(i, bg)
         gs = self.avatar(self.vertices[i], self.body_pose[i])
-        image, alpha, info = rasterize(
+        if not _all_finite(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh):
+            return None  # the rasterizer refuses non-finite input; nothing was changed yet
+        image, _, info = rasterize(
             gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, self.viewmats[i], self.Ks[i],
             self.width, self.height, background=bg, sh_degree=gs.sh_degree,
         )
         loss, parts = total_loss(image, target, gs, cfg.loss)
         if not torch.isfinite(loss):
-            self.optimizer.zero_grad(set_to_none=True)
             return None
         loss.backward()
         if not _grads_finite(self.optimizer):
@@ -335,9 +389,10 @@ class _Trainer:
             return None
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.density.after_step(it, info)
-        return {"loss": float(loss), "psnr": psnr_value(image, target), "frame": i,
-                **{k: float(v) for k, v in parts.items()}, "image": image.detach(), "target": target}
+        events = self.density.after_step(it, info, self.width, self.height)
+        return {"loss": float(loss.detach()), "psnr": psnr_value(image, target), "frame": i,
+                **{k: float(v) for k, v in parts.items()}, "events": events,
+                "image": image.detach(), "target": target}
 
     # --- loop ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
@@ -417,6 +472,12 @@ class _Trainer:
             Image.fromarray(arr).save(tmp, format="PNG")
         if writer:
             writer.add_image("preview/render_target", arr, it, dataformats="HWC")
+
+
+def _all_finite(*tensors: torch.Tensor) -> bool:
+    # A sum is NaN/Inf when any element is (or when finite values overflow: also worth skipping),
+    # and is one cheap reduction per tensor.
+    return bool(torch.isfinite(torch.stack([t.detach().sum() for t in tensors])).all())
 
 
 def _grads_finite(optimizer: torch.optim.Optimizer) -> bool:
