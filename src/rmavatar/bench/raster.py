@@ -32,6 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sh-degree", type=int, default=3, help="SH degree of the colours (default 3)")
     parser.add_argument("--disc-scale", type=float, default=1.5,
                         help="Gaussian size as a multiple of the point spacing (default 1.5)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and Numba threads (default: their defaults, one per core)")
     parser.add_argument("--no-reference", action="store_true", help="skip the dense reference comparison")
     parser.epilog = "Example: rmavatar bench raster --json bench_raster.json"
 
@@ -200,6 +202,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--repeats must be >= 1 and --warmup >= 0")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"--device {args.device}: no CUDA device is available")
+    from rmavatar.render._numba import numba
+
+    if args.threads is not None:
+        if not 1 <= args.threads <= numba.config.NUMBA_NUM_THREADS:
+            raise UserError(f"--threads must be 1..{numba.config.NUMBA_NUM_THREADS}")
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(args.threads)
     cuda = args.device.startswith("cuda")
     sync = torch.cuda.synchronize if cuda else (lambda: None)
 
@@ -240,8 +249,6 @@ def run(args: argparse.Namespace) -> int:
             f"{reference['speedup_forward_backward']:.0f}x faster",
             flush=True,
         )
-
-    from rmavatar.render._numba import numba
 
     report = {
         "benchmark": "raster",
