@@ -275,3 +275,71 @@ def test_needles_and_giants():
     img, alpha, _ = rasterize(p32["means"], p32["quats"], p32["scales"], p32["opacities"], p32["colors"],
                               viewmat.float(), K.float(), w, h, background=p32["background"])
     assert torch.isfinite(img).all() and torch.isfinite(alpha).all()
+
+
+def test_projection_and_sh_match_gsplat_torch_reference():
+    """Where gsplat is installed (any machine), its pure-torch reference agrees with our projection/SH."""
+    pytest.importorskip("gsplat")
+    ti = pytest.importorskip("gsplat.cuda._torch_impl")
+    from rmavatar.render.project import project_gaussians, sh_to_rgb
+
+    params, viewmat, K, w, h = _scene(300, 18, sh_degree=3, width=64, height=48)
+    m, q, s, o = (params[k] for k in ("means", "quats", "scales", "opacities"))
+    covars, _ = ti._quat_scale_to_covar_preci(q, s, compute_covar=True, compute_preci=False, triu=False)
+    radii, means2d, depths, conics, _ = ti._fully_fused_projection(
+        m, covars, viewmat[None], K[None], w, h, eps2d=0.3, near_plane=0.01, far_plane=1e10)
+    ours = project_gaussians(m, q, s, o, viewmat, K, w, h)
+    both = ours.visible & (radii[0] > 0).all(-1)
+    assert both.sum() > 100 and not (ours.visible & ~(radii[0] > 0).all(-1)).any()
+    torch.testing.assert_close(ours.means2d[both], means2d[0][both])
+    torch.testing.assert_close(ours.conics[both], conics[0][both])
+    torch.testing.assert_close(ours.depths[both], depths[0][both])
+    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    theirs = torch.clamp_min(ti._spherical_harmonics(3, m - campos, params["colors"]) + 0.5, 0.0)
+    torch.testing.assert_close(sh_to_rgb(params["colors"], 3, m, campos), theirs)
+
+
+def test_gsplat_backend_plumbing_with_a_stand_in(monkeypatch):
+    """The gsplat wrapper's reshaping and means2d gradient, with gsplat 1.5.3's call signature and
+    output layout imitated on the CPU (the real library needs CUDA)."""
+    import types
+
+    from rmavatar.render import gsplat_backend
+    from rmavatar.render.cpu import composite
+    from rmavatar.render.project import project_gaussians, sh_to_rgb
+
+    def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
+                           near_plane, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode,
+                           rasterize_mode):
+        assert (near_plane, eps2d, packed, tile_size, render_mode, rasterize_mode) == (
+            0.01, 0.3, False, 16, "RGB", "classic")
+        assert means.dtype == torch.float32 and viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
+        proj = project_gaussians(means, quats, scales, opacities, viewmats[0], Ks[0], width, height)
+        means2d_c = proj.means2d[None]  # gsplat composites with the batched [C,N,2] tensor
+        campos = -viewmats[0, :3, :3].T @ viewmats[0, :3, 3]
+        rgb = sh_to_rgb(colors, sh_degree, means, campos) if sh_degree is not None else colors
+        image, alpha = composite(means2d_c[0], proj.conics, rgb, opacities, backgrounds[0],
+                                 proj.radii_xy, proj.depths, proj.visible, width, height)
+        meta = {"means2d": means2d_c, "radii": proj.radii_xy[None], "depths": proj.depths[None]}
+        return image[None], alpha[None], meta
+
+    monkeypatch.setattr(gsplat_backend, "_import_gsplat", lambda: types.SimpleNamespace(rasterization=fake_rasterization))
+    monkeypatch.setattr(gsplat_backend, "_check_device", lambda means: None)
+    params, viewmat, K, w, h = _scene(40, 19, sh_degree=2)
+    p32 = {k: v.float() for k, v in params.items()}
+    outs = {}
+    for backend in ("cpu", "gsplat"):
+        p = {k: v.clone().requires_grad_(True) for k, v in p32.items()}
+        image, alpha, info = rasterize(p["means"], p["quats"], p["scales"], p["opacities"], p["colors"],
+                                       viewmat.float(), K.float(), w, h, background=p["background"],
+                                       sh_degree=2, backend=backend)
+        (image.sum() + 2 * alpha.sum()).backward()
+        outs[backend] = (image, alpha, info, p["means"].grad)
+    (i1, a1, info1, g1), (i2, a2, info2, g2) = outs["cpu"], outs["gsplat"]
+    assert info2["backend"] == "gsplat" and i2.shape == (h, w, 3) and a2.shape == (h, w, 1)
+    torch.testing.assert_close(i2, i1)
+    torch.testing.assert_close(g2, g1)
+    assert info2["radii"].shape == (40,) and info2["radii"].dtype == torch.int32
+    assert torch.equal(info2["radii"], info1["radii"]) and torch.equal(info2["visible"], info1["visible"])
+    assert info2["means2d"].shape == (40, 2)
+    torch.testing.assert_close(info2["means2d"].grad, info1["means2d"].grad)

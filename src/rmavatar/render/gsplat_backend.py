@@ -23,14 +23,18 @@ def _import_gsplat():
     return gsplat
 
 
+def _check_device(means: Tensor) -> None:
+    if not means.is_cuda:
+        raise UserError("backend 'gsplat' needs CUDA tensors; use backend='cpu' (or 'auto') on the CPU")
+
+
 def rasterize_gsplat(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
     viewmat: Tensor, K: Tensor, width: int, height: int,
     background: Tensor | None, sh_degree: int | None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Arguments as ``rasterize`` (already validated); tensors must be on a CUDA device."""
-    if not means.is_cuda:
-        raise UserError("backend 'gsplat' needs CUDA tensors; use backend='cpu' (or 'auto') on the CPU")
+    _check_device(means)
     gsplat = _import_gsplat()
     dtype, device = means.dtype, means.device
     f32 = torch.float32
@@ -43,6 +47,7 @@ def rasterize_gsplat(
     )
     means2d_c = meta["means2d"]  # [1,N,2]
     radii = meta["radii"][0]  # [N,2] in gsplat >= 1.5, [N] before
+    visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
     if radii.dim() == 2:
         radii = radii.amax(dim=-1)
     means2d = means2d_c[0]
@@ -59,7 +64,7 @@ def rasterize_gsplat(
     info = {
         "means2d": means2d,
         "radii": radii.to(torch.int32),
-        "visible": radii > 0,
+        "visible": visible,
         "depths": meta["depths"][0],
         "backend": "gsplat",
     }
