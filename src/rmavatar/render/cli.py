@@ -13,6 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--random", type=int, metavar="N", help="render a synthetic figure made of N Gaussians")
     src.add_argument("--ply", metavar="FILE", help="render a standard 3DGS PLY file")
+    src.add_argument("run", nargs="?", metavar="RUN", help="a trained run (with --turntable: a 360-degree video)")
     parser.add_argument("--out", required=True, metavar="PNG", help="output image (PNG)")
     parser.add_argument("--size", type=int, default=512, help="image width and height in pixels (default 512)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of --random (default 0)")
@@ -22,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"), help="rasterizer backend")
     parser.epilog = "Examples:\n  rmavatar render --random 20000 --out figure.png\n  rmavatar render --ply point_cloud.ply --out splat.png --size 768"
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    from rmavatar.animate.turntable import add_turntable_arguments
+
+    add_turntable_arguments(parser)
 
 
 def _frame_camera(means, size: int, azimuth: float):
@@ -54,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.size <= 0 or args.size > 8192:
         raise UserError(f"--size must be 1..8192, got {args.size}")
+    if args.run is not None:
+        from rmavatar.animate.turntable import run_turntable
+
+        return run_turntable(args)
     if not args.out.lower().endswith(".png"):
         raise UserError(f"--out {args.out}: give a .png file name")
     if args.random is not None:

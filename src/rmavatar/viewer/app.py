@@ -86,7 +86,8 @@ class AvatarViewer:
             with self.server.gui.add_folder("Motion"):
                 self.frame_slider = self.server.gui.add_slider("Frame", 0, state.num_frames - 1, 1, 0)
                 self.play = self.server.gui.add_checkbox("Play", False)
-                self.speed = self.server.gui.add_slider("FPS", 1.0, 60.0, 1.0, float(round(state.fps)))
+                top = float(max(60, round(state.fps)))  # mocap runs at up to 120-250 fps
+                self.speed = self.server.gui.add_slider("FPS", 1.0, top, 1.0, float(min(max(round(state.fps), 1), top)))
             self.frame_slider.on_update(lambda _: self.show_frame(int(self.frame_slider.value)))
             self._player = threading.Thread(target=self._play_loop, daemon=True)
             self._player.start()
@@ -145,7 +146,8 @@ def avatar_viewer(poser, seq=None, fps: float = 30.0, host: str = "127.0.0.1", p
     else:
         seq = recenter_motion(seq, poser.root_rest())
     sample = seq.select(sorted({round(i * (len(seq) - 1) / 15) for i in range(min(len(seq), 16))}))
-    center, distance = frame_the_body(poser.vertices(sample), VideoOptions(fov_deg=40.0))
+    # framed for a narrower view than the 40 degrees the browser gets: leaves room around the body
+    center, distance = frame_the_body(poser.vertices(sample), VideoOptions(fov_deg=30.0))
 
     def frame_fn(i: int):
         gs = poser.pose(seq, i)

@@ -19,7 +19,7 @@ import tempfile
 import time
 import urllib.request
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -59,12 +59,13 @@ def find_browser() -> str | None:
 
 def screenshot(url: str, width: int = 640, height: int = 480, timeout: float = 60.0,
                ready: Callable[[np.ndarray], bool] | None = None, browser: str | None = None,
-               settle: float = 1.0) -> np.ndarray:
-    """Load ``url`` in headless Chromium and return a screenshot [H,W,3] uint8.
+               settle: float = 1.0, steps: Sequence[Callable[[], object]] = ()) -> list[np.ndarray]:
+    """Load ``url`` in headless Chromium and return screenshots [H,W,3] uint8.
 
     Screenshots are taken every ``settle`` seconds until ``ready(image)`` is true (then one more after
-    ``settle``, so a page still drawing is not caught mid-frame) or ``timeout`` passes; the last one is
-    returned either way.
+    ``settle``, so a page still drawing is not caught mid-frame) or ``timeout`` passes; that is the first
+    image. Then each of ``steps`` is called (e.g. to move the viewer's camera from Python) and another
+    screenshot is taken ``settle`` seconds later: one image per step follows.
     """
     browser = browser or find_browser()
     if browser is None:
@@ -76,7 +77,7 @@ def screenshot(url: str, width: int = 640, height: int = 480, timeout: float = 6
     try:
         port = _devtools_port(Path(profile), proc, timeout=30.0)
         ws_url = _page_websocket(port)
-        return _drive(ws_url, url, width, height, timeout, ready, settle)
+        return _drive(ws_url, url, width, height, timeout, ready, settle, steps)
     finally:
         proc.terminate()
         try:
@@ -115,7 +116,7 @@ def _page_websocket(port: int) -> str:
         time.sleep(0.1)
 
 
-def _drive(ws_url, url, width, height, timeout, ready, settle) -> np.ndarray:
+def _drive(ws_url, url, width, height, timeout, ready, settle, steps) -> list[np.ndarray]:
     from PIL import Image
     from websockets.sync.client import connect
 
@@ -149,7 +150,13 @@ def _drive(ws_url, url, width, height, timeout, ready, settle) -> np.ndarray:
                 continue
             if ready is not None and ready(image):
                 time.sleep(settle)
-                return shot()
+                image = shot()
+                break
         if image is None:
             raise TimeoutError(f"could not take a screenshot of {url} within {timeout} s")
-        return image
+        images = [image]
+        for step in steps:
+            step()
+            time.sleep(settle)
+            images.append(shot())
+        return images

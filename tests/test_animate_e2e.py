@@ -1,0 +1,239 @@
+"""End to end on a small trained run: ``rmavatar export / animate / render --turntable / view``.
+
+The run is trained once per session (a tiny synthetic subject, 32x32, a few iterations) by the
+``trained_run`` fixture. Set RMAVATAR_KEEP_OUTPUTS=DIR to keep the videos, PLYs and screenshots.
+"""
+
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import roma
+import torch
+
+from rmavatar.cli import main
+
+ITERS = 10
+SIZE = 32
+
+
+@pytest.fixture(scope="session")
+def trained_run(tmp_path_factory):
+    """RUN folder of a tiny avatar trained with the real trainer (shared by every module using it)."""
+    root = tmp_path_factory.getbasetemp() / "rmavatar_trained_run"
+    run = root / "run"
+    if (run / "checkpoints" / "last.pt").is_file():
+        return run
+    root.mkdir(exist_ok=True)
+    assert main(["synth", str(root / "subject"), "--size", str(SIZE), "--train", "8", "--test", "2",
+                 "--novel-pose", "2", "--ss", "1", "--quiet"]) == 0
+    from rmavatar.train import TrainConfig, train
+
+    cfg = TrainConfig()
+    cfg.data.path = str(root / "subject")
+    cfg.data.size = SIZE
+    cfg.optim.iters = ITERS
+    cfg.density.enabled = False
+    cfg.log.tensorboard = False
+    cfg.model.sh_degree = 1
+    cfg.device = "cpu"
+    train(cfg, run, progress=False)
+    return run
+
+
+def keep(path: Path) -> None:
+    target = os.environ.get("RMAVATAR_KEEP_OUTPUTS")
+    if target:
+        Path(target).mkdir(parents=True, exist_ok=True)
+        dst = Path(target) / path.name
+        if path.is_dir():
+            shutil.copytree(path, dst, dirs_exist_ok=True)
+        else:
+            shutil.copy(path, dst)
+
+
+def write_amass_like(path: Path, n: int = 8) -> Path:
+    """An AMASS-layout motion (poses (N,156) SMPL-H, z-up world, 120 fps) walking 2 m while waving."""
+    t = np.arange(n) / n
+    body = np.zeros((n, 72))
+    body[:, 16 * 3 + 2] = -1.0 + 0.9 * np.sin(2 * np.pi * t)  # left arm waves
+    body[:, 1 * 3] = 0.5 * np.sin(2 * np.pi * t)  # hips swing
+    body[:, 2 * 3] = -0.5 * np.sin(2 * np.pi * t)
+    z_from_y = roma.rotvec_to_rotmat(torch.tensor([math.pi / 2, 0.0, 0.0], dtype=torch.float64))
+    turn = roma.rotvec_to_rotmat(torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64))
+    body[:, :3] = roma.rotmat_to_rotvec((z_from_y @ turn).expand(n, 3, 3)).numpy()
+    poses = np.concatenate([body[:, :66], np.zeros((n, 90))], 1)
+    trans = np.stack([2 * t, -1.5 * t, 0.95 + 0 * t], 1)  # z-up: height is z
+    np.savez(path, poses=poses.astype(np.float32), trans=trans.astype(np.float32),
+             betas=np.zeros(16, np.float32), mocap_framerate=np.float64(120.0))
+    return path
+
+
+def read_video(path: Path) -> list[np.ndarray]:
+    reader = imageio.get_reader(str(path), "ffmpeg")
+    frames = [f for f in reader]
+    reader.close()
+    return frames
+
+
+def mask(img: np.ndarray, bg: int = 255) -> np.ndarray:
+    return np.abs(img.astype(int) - bg).max(-1) > 12
+
+
+# ----------------------------------------------------------------------------------------------- export
+def test_export_trained_run(trained_run, tmp_path, capsys):
+    plyfile = pytest.importorskip("plyfile")
+    from rmavatar.animate.camera import intrinsics, look_at
+    from rmavatar.animate.drive import render_image
+    from rmavatar.export import read_ply
+    from rmavatar.train import load_run
+
+    out = tmp_path / "avatar.ply"
+    assert main(["export", str(trained_run), "--ply", str(out)]) == 0
+    assert "Gaussians" in capsys.readouterr().out
+    keep(out)
+    run = load_run(trained_run)
+    ply = plyfile.PlyData.read(str(out))
+    assert ply["vertex"].count == run.avatar.num_gaussians
+    assert "f_rest_8" in ply["vertex"].data.dtype.names and "f_rest_9" not in ply["vertex"].data.dtype.names
+    # the avatar's own render (its forward in the zero pose) against the PLY as a static scene
+    zero = torch.zeros(1, 3)
+    from rmavatar.animate.drive import run_betas
+
+    verts = run.body(run_betas(run), zero, torch.zeros(1, 69), zero).vertices[0]
+    run.avatar.active_sh_degree.fill_(run.avatar.max_sh_degree)
+    with torch.no_grad():
+        gs = run.avatar(verts, torch.zeros(69))
+    back = read_ply(out)
+    K = intrinsics(64, 64, 40.0)
+    for eye in ([0.0, 0.0, 3.5], [-3.0, 1.0, -1.0]):
+        view = look_at(eye, [0.0, -0.2, 0.0])
+        ref = render_image(gs, view, K, 64, 64)
+        assert mask((ref.numpy() * 255).astype(np.uint8)).mean() > 0.05
+        assert float((render_image(back, view, K, 64, 64) - ref).abs().max()) < 1e-5
+
+    motion = write_amass_like(tmp_path / "walk.npz")
+    assert main(["export", str(trained_run), "--ply", str(tmp_path / "f3.ply"), "--motion", str(motion),
+                 "--frame", "3"]) == 0
+    assert not torch.allclose(read_ply(tmp_path / "f3.ply").means, back.means, atol=1e-3)
+    assert main(["export", str(trained_run), "--ply", str(tmp_path / "f9.ply"), "--motion", str(motion),
+                 "--frame", "9"]) == 2
+    assert "out of range" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["avatar.ply", "f3.ply", "walk.npz"]
+
+
+# ----------------------------------------------------------------------------------------------- animate
+def test_animate_trained_run_mp4(trained_run, tmp_path, capsys):
+    motion = write_amass_like(tmp_path / "walk.npz")
+    out = tmp_path / "walk.mp4"
+    # 120 fps motion shown at 30 fps: every 4th frame -> 2 of 8
+    assert main(["animate", str(trained_run), "--motion", str(motion), "--out", str(out), "--size", "48",
+                 "--fps", "30"]) == 0
+    assert "wrote 2 frames at 30 fps" in capsys.readouterr().out
+    assert main(["animate", str(trained_run), "--motion", str(motion), "--out", str(out), "--size", "47"]) == 0
+    keep(out)
+    meta = imageio.get_reader(str(out), "ffmpeg").get_meta_data()
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p") and meta["fps"] == 120
+    frames = read_video(out)
+    assert len(frames) == 8 and frames[0].shape == (48, 48, 3)  # 47 made even
+    for f in frames:
+        m = mask(f)
+        ys, xs = np.nonzero(m)
+        assert 0.03 < m.mean() < 0.6 and abs(xs.mean() - 24) < 8 and abs(ys.mean() - 24) < 10
+        assert (f[:2, :2] > 240).all()  # white background
+    assert np.abs(frames[0].astype(int) - frames[2]).mean() > 0.5
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.mp4", "walk.npz"]
+
+
+def test_animate_trained_run_png_orbit(trained_run, tmp_path):
+    motion = write_amass_like(tmp_path / "walk.npz")
+    out = tmp_path / "frames"
+    assert main(["animate", str(trained_run), "--motion", str(motion), "--out", f"{out}/", "--size", "32",
+                 "--camera", "orbit", "--frames", "2:6", "--bg", "black"]) == 0
+    keep(out)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [f"frame_{i:05d}.png" for i in range(4)]
+    imgs = [imageio.imread(out / n) for n in names]
+    assert all(mask(i, bg=0).mean() > 0.03 for i in imgs) and (imgs[0][:2, :2] < 15).all()
+
+
+def test_animate_bad_inputs_with_trained_run(trained_run, tmp_path, capsys):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((4, 60), np.float32))
+    assert main(["animate", str(trained_run), "--motion", str(bad), "--out", str(tmp_path / "v.mp4")]) == 2
+    assert "poses must have shape" in capsys.readouterr().err
+    good = write_amass_like(tmp_path / "walk.npz")
+    ro = tmp_path / "blocker"
+    ro.write_text("a file, not a folder")
+    assert main(["animate", str(trained_run), "--motion", str(good), "--out", str(ro / "v.mp4")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    assert main(["animate", str(trained_run), "--motion", str(good), "--out", str(tmp_path / "v.gif")]) == 2
+    assert main(["animate", str(trained_run), "--motion", str(good), "--out", str(tmp_path / "v.mp4"),
+                 "--frames", "9:12"]) == 2
+    assert "selects no frames" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npy", "blocker", "walk.npz"]
+
+
+# ----------------------------------------------------------------------------------------------- turntable
+def test_turntable_trained_run(trained_run, tmp_path):
+    from rmavatar.cli import COMMANDS
+
+    if "render" not in COMMANDS:
+        pytest.skip("the render command is not registered yet")
+    out = tmp_path / "turn.mp4"
+    code = main(["render", str(trained_run), "--turntable", "--out", str(out), "--size", "48", "--frames", "12"])
+    assert code == 0
+    keep(out)
+    frames = read_video(out)
+    assert len(frames) == 12 and frames[0].shape == (48, 48, 3)
+    front, back = mask(frames[0]), mask(frames[6])
+    assert front.mean() > 0.03
+    iou = (front & np.fliplr(back)).sum() / (front | np.fliplr(back)).sum()
+    assert iou > 0.6  # the back view mirrors the front silhouette
+
+
+# ----------------------------------------------------------------------------------------------- view
+def test_view_command_in_headless_chromium(trained_run, tmp_path):
+    from rmavatar.viewer.headless import find_browser, screenshot
+
+    browser = find_browser()
+    if browser is None:
+        pytest.skip("no chromium binary found: run scripts/install-browser.sh (or set RMAVATAR_CHROMIUM)")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    motion = write_amass_like(tmp_path / "walk.npz")
+    proc = subprocess.Popen([sys.executable, "-m", "rmavatar", "view", str(trained_run), "--motion", str(motion),
+                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        lines = [""]
+        while "viewer running at" not in lines[-1]:
+            lines.append(proc.stdout.readline())
+            assert lines[-1] or proc.poll() is None, "rmavatar view exited early:\n" + "".join(lines)
+            assert time.monotonic() < deadline, "rmavatar view did not start:\n" + "".join(lines)
+        w, h = 800, 600
+
+        def middle(img):
+            mid = img[h // 4: 3 * h // 4, w // 2 - 150: w // 2 + 100].astype(int)
+            return np.abs(mid - 255).max(-1) > 40
+
+        (shot,) = screenshot(f"http://127.0.0.1:{port}/", w, h, timeout=90, browser=browser,
+                             ready=lambda img: middle(img).mean() > 0.02, settle=1.5)
+        target = os.environ.get("RMAVATAR_KEEP_OUTPUTS")
+        if target:
+            from PIL import Image
+
+            Image.fromarray(shot).save(Path(target) / "view_trained.png")
+        assert middle(shot).mean() > 0.02, "the avatar is not visible in the browser"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

@@ -1,0 +1,98 @@
+"""The viser viewer: served on a free localhost port, opened in a real headless Chromium, screenshotted.
+
+Needs a chromium binary (``scripts/install-browser.sh``); without one the browser test is skipped.
+Set RMAVATAR_VIEWER_SHOTS=DIR to keep the screenshots for looking at.
+"""
+
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_animate_avatar import dance, fake_run  # noqa: F401 - fake_run is a fixture
+
+from rmavatar.animate.drive import Poser
+from rmavatar.animate.motion import motion_to_sequence
+from rmavatar.body import Motion
+from rmavatar.viewer.app import SH_C0, avatar_viewer, splat_arrays
+from rmavatar.viewer.headless import find_browser, screenshot
+
+W, H = 800, 600
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def middle_mask(img: np.ndarray) -> np.ndarray:
+    """Pixels of the middle of the page (away from viser's control panel, right) differing from white."""
+    mid = img[H // 4: 3 * H // 4, W // 2 - 150: W // 2 + 100].astype(int)
+    return np.abs(mid - 255).max(-1) > 40
+
+
+def test_splat_arrays_match_3dgs_definitions():
+    g = torch.Generator().manual_seed(1)
+    q = torch.randn(5, 4, generator=g)
+    s = torch.rand(5, 3, generator=g) + 0.1
+    sh = torch.randn(5, 4, 3, generator=g)
+    out = splat_arrays(torch.zeros(5, 3), q, s, torch.rand(5, generator=g), sh)
+    from scipy.spatial.transform import Rotation
+
+    qn = (q / q.norm(dim=1, keepdim=True)).double().numpy()
+    R = Rotation.from_quat(qn[:, [1, 2, 3, 0]]).as_matrix()  # scipy is xyzw
+    cov = R @ (np.eye(3)[None] * (s.double().numpy() ** 2)[:, None, :]) @ R.transpose(0, 2, 1)
+    np.testing.assert_allclose(out["covariances"], cov, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(out["rgbs"], np.clip(SH_C0 * sh[:, 0].numpy() + 0.5, 0, 1), atol=1e-6)
+    assert out["opacities"].shape == (5, 1)
+
+
+@pytest.fixture
+def viewer(fake_run):  # noqa: F811
+    poses, trans = dance(n=6, drift=3.0)
+    seq = motion_to_sequence(Motion(poses[:, :3], poses[:, 3:], trans, fps=30.0))
+    v = avatar_viewer(Poser.from_run(fake_run), seq, fps=30.0, port=free_port())
+    yield v
+    v.close()
+
+
+def test_viewer_timeline_and_play(viewer):
+    before = viewer.splats.buffer.copy()
+    viewer.frame_slider.value = 2  # (frame 3 repeats frame 0's pose: the dance is periodic)
+    assert viewer._shown == 2 and not np.array_equal(before, viewer.splats.buffer)
+    viewer.speed.value = 60.0
+    viewer.play.value = True
+    time.sleep(0.6)
+    viewer.play.value = False
+    assert int(viewer.frame_slider.value) != 2  # playing advanced the timeline
+
+
+def test_viewer_in_headless_chromium(viewer):
+    browser = find_browser()
+    if browser is None:
+        pytest.skip("no chromium binary found: run scripts/install-browser.sh (or set RMAVATAR_CHROMIUM)")
+    shots = screenshot(
+        f"http://127.0.0.1:{viewer.port}/", W, H, timeout=90, browser=browser,
+        ready=lambda img: middle_mask(img).mean() > 0.02, settle=1.5,
+        steps=[lambda: viewer.set_camera("side"), lambda: viewer.set_camera("back"),
+               lambda: setattr(viewer.frame_slider, "value", 4)],
+    )
+    keep = os.environ.get("RMAVATAR_VIEWER_SHOTS")
+    if keep:
+        from PIL import Image
+
+        Path(keep).mkdir(parents=True, exist_ok=True)
+        for name, img in zip(("front", "side", "back", "back_frame4"), shots):
+            Image.fromarray(img).save(Path(keep) / f"viewer_{name}.png")
+    front, side, back, back4 = (middle_mask(s) for s in shots)
+    assert front.mean() > 0.02, "the avatar is not visible in the browser"
+    assert np.abs(shots[0][H // 4:, : W // 4].astype(int) - 255).max(-1).mean() < 20  # white page elsewhere
+    # the presets move the browser's camera: spread arms seen from the side are hidden
+    assert side.sum() < 0.75 * front.sum()
+    assert back.mean() > 0.02 and np.abs(shots[0].astype(int) - shots[2]).mean() > 1.0
+    # the timeline moves the avatar in the browser
+    assert (back ^ back4).mean() > 0.005
