@@ -267,7 +267,7 @@ def test_needles_and_giants():
     """Extremely thin and very large Gaussians: exact in float64, finite in float32."""
     params, viewmat, K, w, h = _scene(6, 17)
     params["scales"] = torch.tensor(
-        [[3.0, 1e-6, 1e-6], [1e-6, 2.0, 1e-6], [1e-7, 1e-7, 5.0], [50.0, 40.0, 1e-3], [1e-3, 1e-3, 1e-3], [0.3, 1e-5, 0.2]],
+        [[3.0, 1e-6, 1e-6], [1e-6, 2.0, 1e-6], [1e-7, 1e-7, 5.0], [5e9, 4e9, 1e-3], [1e-3, 1e-3, 1e-3], [0.3, 1e-5, 0.2]],
         dtype=F64)
     params["means"][:, 2] = torch.linspace(-1, 1, 6, dtype=F64)
     _compare(params, viewmat, K, w, h)

@@ -44,10 +44,11 @@ def bin_tiles(means2d, radii_xy, order, tiles_x, tiles_y):
         my = means2d[g, 1]
         rx = radii_xy[g, 0]
         ry = radii_xy[g, 1]
-        x0 = min(max(0, int(math.floor((mx - rx) / TILE))), tiles_x)
-        x1 = min(max(0, int(math.ceil((mx + rx) / TILE))), tiles_x)
-        y0 = min(max(0, int(math.floor((my - ry) / TILE))), tiles_y)
-        y1 = min(max(0, int(math.ceil((my + ry) / TILE))), tiles_y)
+        # Clamp in floating point before converting, so huge boxes cannot overflow.
+        x0 = int(math.floor(min(max(0.0, (mx - rx) / TILE), tiles_x)))
+        x1 = int(math.ceil(min(max(0.0, (mx + rx) / TILE), tiles_x)))
+        y0 = int(math.floor(min(max(0.0, (my - ry) / TILE), tiles_y)))
+        y1 = int(math.ceil(min(max(0.0, (my + ry) / TILE), tiles_y)))
         bounds[k, 0] = x0
         bounds[k, 1] = x1
         bounds[k, 2] = y0

@@ -104,7 +104,8 @@ def project_gaussians(
         mx, my = means2d.detach().unbind(-1)
         on_screen = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
         visible = in_depth & ok_det & ok_op & ((rx > 0) | (ry > 0)) & on_screen
-        radii_xy = torch.stack([rx, ry], dim=-1).to(torch.int32) * visible[:, None]
+        # Clamped only for storage: a box wider than 2^30 px covers the image either way.
+        radii_xy = torch.stack([rx, ry], dim=-1).clamp_max(2.0**30).to(torch.int32) * visible[:, None]
     return Projection(means2d, conics, z, radii_xy, visible)
 
 
