@@ -159,6 +159,7 @@ def test_turntable_front_and_back_mirror(fake_run, tmp_path):
     ["animate", "{run}", "--motion", "{motion}", "--out", "{tmp}/v.mp4"],
     ["export", "{run}", "--ply", "{tmp}/a.ply"],
     ["render", "{run}", "--turntable", "--out", "{tmp}/t.mp4"],
+    ["view", "{run}", "--port", "0"],
 ])
 def test_commands_without_checkpoint(tmp_path, capsys, command):
     from rmavatar.cli import COMMANDS
