@@ -77,7 +77,7 @@ def test_viewer_in_headless_chromium(viewer):
         pytest.skip("no chromium binary found: run scripts/install-browser.sh (or set RMAVATAR_CHROMIUM)")
     shots = screenshot(
         f"http://127.0.0.1:{viewer.port}/", W, H, timeout=90, browser=browser,
-        ready=lambda img: middle_mask(img).mean() > 0.02, settle=1.5,
+        ready=lambda img: middle_mask(img).mean() > 0.02, settle=1.0,
         steps=[lambda: viewer.set_camera("side"), lambda: viewer.set_camera("back"),
                lambda: setattr(viewer.frame_slider, "value", 4)],
     )

@@ -130,6 +130,8 @@ class AvatarViewer:
 
     def close(self) -> None:
         self._stop.set()
+        if self.frame_slider is not None:
+            self._player.join(timeout=5.0)  # no frame update may race the server's shutdown
         self.server.stop()
 
 
