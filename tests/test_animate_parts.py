@@ -1,6 +1,7 @@
 """Pieces of ``animate`` that need no avatar: cameras, motion re-centring, frame ranges, video writing."""
 
 import math
+import os
 
 import imageio.v2 as imageio
 import numpy as np
@@ -227,3 +228,11 @@ def test_bad_outputs(tmp_path):
         with frame_writer(tmp_path / "odd.mp4", 10, 15, 16):
             pass
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "mine"]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc (a file system nobody can create files in)")
+@pytest.mark.parametrize("target", ["/proc/rmavatar-test.mp4", "/proc/rmavatar-test-frames/"])
+def test_unwritable_file_system(target):
+    with pytest.raises(UserError, match="cannot write"):
+        with frame_writer(target, 10, 16, 16) as write:
+            write(np.zeros((16, 16, 3), np.uint8))

@@ -145,3 +145,9 @@ def test_failed_write_leaves_nothing(tmp_path):
         write_ply(tmp_path / "in_the_way.ply", **random_gaussians(n=5))
     assert [p.name for p in tmp_path.iterdir()] == ["in_the_way.ply"]
     assert list((tmp_path / "in_the_way.ply").iterdir()) == []
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc (a file system nobody can create files in)")
+def test_unwritable_file_system():
+    with pytest.raises(UserError, match="cannot write /proc/rmavatar-test.ply"):
+        write_ply("/proc/rmavatar-test.ply", **random_gaussians(n=5))

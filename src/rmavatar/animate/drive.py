@@ -72,6 +72,8 @@ def run_betas(run) -> torch.Tensor | None:
     Read from the run (``betas``) or its avatar; failing that, the mean betas of the training split
     of the run's dataset (every frame of a subject carries the same shape).
     """
+    if getattr(getattr(run, "body", None), "num_betas", None) == 0:
+        return None  # a body without shape parameters (Anny presets): nothing to look up
     for owner in (run, getattr(run, "avatar", None)):
         betas = getattr(owner, "betas", None)
         if betas is not None:

@@ -65,8 +65,8 @@ def frame_writer(out: str | os.PathLike, fps: float, width: int, height: int) ->
                 raise ValueError(f"H.264 yuv420p needs even sizes, got {width}x{height}")
             with atomic_path(path) as tmp, _mp4_writer(Path(tmp), fps, width, height) as write:
                 yield write
-    except PermissionError as exc:
-        raise UserError(f"cannot write {out}: {exc}") from None
+    except OSError as exc:  # permissions, a read-only or full file system, ffmpeg unable to write
+        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
 
 
 def _png_writer(folder: Path, width: int, height: int) -> Callable:
