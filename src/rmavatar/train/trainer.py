@@ -175,6 +175,14 @@ def make_density(avatar, optimizer, cfg: TrainConfig):
     )
 
 
+def set_threads(n: int) -> None:
+    """Use ``n`` CPU threads in torch and in the Numba rasterizer kernels."""
+    import numba
+
+    torch.set_num_threads(n)
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+
+
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -293,7 +301,7 @@ class _Trainer:
 
         cfg = self.cfg
         if cfg.threads > 0:
-            torch.set_num_threads(cfg.threads)
+            set_threads(cfg.threads)
         self.dataset = load_dataset(cfg.data.path, size=cfg.data.size)
         split = cfg.data.split
         n = self.dataset.num_frames(split)
@@ -334,7 +342,11 @@ class _Trainer:
             self.sampler.load_state_dict(self.ckpt["sampler"])
             restore_rng(self.ckpt["rng"], self.bg_generator)
             self.iteration = int(self.ckpt["iteration"])
+            print(f"resuming {self.run_dir} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
         self.ckpt = None  # free the loaded tensors
+        # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
+        for stale in checkpoint_path(self.run_dir).parent.glob(".last.*.tmp.pt"):
+            stale.unlink(missing_ok=True)
 
     def _frame_target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
         frame = self.dataset.frame(self.cfg.data.split, i)

@@ -1,0 +1,219 @@
+"""The training loop end to end on a tiny synthetic subject: it learns, resumes exactly, survives Ctrl-C,
+SIGKILL and NaNs, and refuses runs it must not touch."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from rmavatar.train import load_run
+from rmavatar.train import checkpoint as ck
+from rmavatar.train.config import TrainConfig
+from rmavatar.train.trainer import _Trainer, train
+from rmavatar.utils import UserError
+
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from rmavatar.data.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("synth") / "subject"
+    synthesize(out, SynthConfig(size=SIZE, seed=0, train=12, test=1, novel_pose=1, ss=2), progress=False)
+    return str(out)
+
+
+def _cfg(data, iters, **log):
+    cfg = TrainConfig()
+    cfg.data.path = data
+    cfg.data.size = SIZE
+    cfg.optim.iters = iters
+    cfg.threads = 1  # robust on a shared 2-core machine (spinning OpenMP threads in this process)
+    cfg.log.tensorboard = False
+    cfg.log.preview_every = 10**6
+    for k, v in log.items():
+        setattr(cfg.log, k, v)
+    return cfg
+
+
+def _params(run_dir):
+    return ck.read_checkpoint(ck.checkpoint_path(run_dir))["avatar"]["state_dict"]
+
+
+def _mean_train_psnr(avatar, trainer) -> float:
+    """Mean PSNR over all training frames (white background, full image), rendered deterministically."""
+    from rmavatar.render import rasterize
+
+    bg = torch.ones(3)
+    values = []
+    avatar.eval()
+    with torch.no_grad():
+        for i in range(trainer.vertices.shape[0]):
+            gs = avatar(trainer.vertices[i], trainer.body_pose[i])
+            image, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, trainer.viewmats[i],
+                                    trainer.Ks[i], trainer.width, trainer.height, background=bg,
+                                    sh_degree=gs.sh_degree)
+            target = trainer._frame_target(i, bg)
+            values.append(10 * torch.log10(1 / ((image.clamp(0, 1) - target) ** 2).mean()).item())
+    return sum(values) / len(values)
+
+
+def test_training_raises_psnr_well_above_the_start(data, tmp_path):
+    iters = 200
+    result = train(_cfg(data, iters, preview_every=100), tmp_path / "run", progress=False)
+    assert result.iteration == iters and not result.interrupted
+    # Reference frames and cameras as the trainer sees them.
+    probe = _Trainer(_cfg(data, iters), tmp_path / "probe", None, progress=False)
+    probe._setup()
+    before = _mean_train_psnr(probe.avatar, probe)  # the untrained (grey) avatar
+    loaded = load_run(tmp_path / "run")
+    after = _mean_train_psnr(loaded.avatar, probe)
+    print(f"mean training PSNR: {before:.2f} dB untrained -> {after:.2f} dB after {iters} iterations")
+    assert after - before >= 6.0
+    assert after >= 22.0
+    assert loaded.iteration == iters and loaded.data_spec == probe.cfg.data.path
+    assert loaded.avatar.num_gaussians == loaded.avatar.face_ids.shape[0]
+    assert (tmp_path / "run" / "config.yaml").is_file()
+    assert sorted(p.name for p in (tmp_path / "run" / "previews").iterdir()) == ["iter_000100.png", "iter_000200.png"]
+
+
+def _interrupt_at(monkeypatch, k):
+    """Deliver a real SIGINT to this process right after iteration k."""
+    original = _Trainer.step
+
+    def step(self):
+        out = original(self)
+        if self.iteration + 1 == k:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(_Trainer, "step", step)
+
+
+def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
+    n, k = 12, 5  # the run-length-scaled schedule densifies and resets opacities inside both halves
+    straight = train(_cfg(data, n), tmp_path / "straight", progress=False)
+    assert straight.iteration == n
+    with monkeypatch.context() as m:
+        _interrupt_at(m, k)
+        first = train(_cfg(data, n), tmp_path / "split", progress=False)
+    assert first.interrupted and first.iteration == k
+    assert ck.read_checkpoint(ck.checkpoint_path(tmp_path / "split"))["iteration"] == k
+    second = train(None, tmp_path / "split", resume=True, progress=False)
+    assert second.iteration == n and not second.interrupted
+    a, b = _params(tmp_path / "straight"), _params(tmp_path / "split")
+    assert a.keys() == b.keys()
+    assert a["means"].shape[0] != 0
+    assert a["means"].shape == b["means"].shape  # same densification decisions
+    for key in a:
+        assert torch.allclose(a[key].double(), b[key].double(), rtol=1e-5, atol=1e-6), key
+    oa = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "straight"))["optimizer"]["state"]
+    ob = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "split"))["optimizer"]["state"]
+    for idx in oa:
+        assert int(oa[idx]["step"]) == int(ob[idx]["step"])
+        assert torch.allclose(oa[idx]["exp_avg_sq"], ob[idx]["exp_avg_sq"], rtol=1e-4, atol=1e-12)
+
+
+def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_path):
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", "400",
+           "--size", str(SIZE), "--checkpoint-every", "3", "--threads", "1"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = ck.checkpoint_path(run)
+    deadline = time.time() + 120
+    try:
+        while time.time() < deadline:
+            if path.is_file() and ck.read_checkpoint(path)["iteration"] >= 6:
+                break
+            assert proc.poll() is None, "training ended early"
+            time.sleep(0.05)
+        else:
+            pytest.fail("no checkpoint at iteration >= 6 within 120 s")
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    saved = ck.read_checkpoint(path)["iteration"]
+    assert saved >= 6 and saved % 3 == 0
+    # Resume (in-process, shorter run via --iters) starts exactly at the checkpoint.
+    cfg_iters = [(saved + 2, "optim", "iters")]
+    result = train(None, run, resume=True, data=data, overrides=cfg_iters, progress=False)
+    assert result.iteration == saved + 2
+    assert not list(path.parent.glob(".last.*"))
+
+
+def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
+    import rmavatar.train.losses as losses
+
+    original = losses.total_loss
+    calls = {"n": 0}
+
+    def poisoned(render, target, gaussians, weights=None, **kw):
+        calls["n"] += 1
+        loss, parts = original(render, target, gaussians, weights, **kw)
+        if calls["n"] == 2:
+            return loss * float("nan"), parts
+        if calls["n"] == 3:  # finite loss, NaN gradients
+            render.register_hook(lambda g: torch.full_like(g, float("nan")))
+        return loss, parts
+
+    monkeypatch.setattr(losses, "total_loss", poisoned)
+    result = train(_cfg(data, 5), tmp_path / "run", progress=False)
+    assert result.iteration == 5
+    state = _params(tmp_path / "run")
+    assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
+    opt = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))["optimizer"]["state"]
+    assert int(opt[0]["step"]) == 3  # 5 iterations, 2 skipped
+
+
+def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_path, monkeypatch):
+    import rmavatar.train.losses as losses
+
+    original = losses.total_loss
+
+    def always_nan(*a, **kw):
+        loss, parts = original(*a, **kw)
+        return loss * float("nan"), parts
+
+    monkeypatch.setattr(losses, "total_loss", always_nan)
+    cfg = _cfg(data, 50, max_bad_steps=3)
+    with pytest.raises(UserError, match="3 consecutive steps"):
+        train(cfg, tmp_path / "run", progress=False)
+    saved = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))
+    fresh = _Trainer(_cfg(data, 50), tmp_path / "probe", None, progress=False)
+    fresh._setup()
+    for key, value in [*fresh.avatar.named_parameters(), ("face_ids", fresh.avatar.face_ids)]:
+        assert torch.equal(saved["avatar"]["state_dict"][key], value), key
+
+
+def test_refuses_foreign_and_mismatched_runs(data, tmp_path):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="someone else"):
+        train(_cfg(data, 2), foreign, progress=False)
+    run = tmp_path / "run"
+    train(_cfg(data, 2), run, progress=False)
+    with pytest.raises(UserError, match="--resume"):
+        train(_cfg(data, 2), run, progress=False)
+    with pytest.raises(UserError, match="not of"):
+        train(None, run, resume=True, data=str(tmp_path), progress=False)
+    with pytest.raises(UserError, match="cannot change"):
+        train(None, run, resume=True, overrides=[(False, "model", "rectifier")], progress=False)
+    # A checkpoint whose body topology differs from the body model it names.
+    path = ck.checkpoint_path(run)
+    payload = ck.read_checkpoint(path)
+    payload["body"]["num_faces"] += 1
+    payload["body"]["faces_sha1"] = "0" * 40
+    for key in ("format", "version"):
+        payload.pop(key)
+    ck.save_checkpoint(path, payload)
+    with pytest.raises(UserError, match="incompatible"):
+        load_run(run)
+    with pytest.raises(UserError, match="incompatible"):
+        train(None, run, resume=True, progress=False)
