@@ -82,7 +82,8 @@ def test_poser_applies_rectifier(fake_run):
 def test_export_round_trip_matches_avatar_render(fake_run, tmp_path):
     plyfile = pytest.importorskip("plyfile")
     out = tmp_path / "avatar.ply"
-    n = export_ply(fake_run, pose_for_export(None, 0), out)
+    poser = Poser.from_run(fake_run)
+    n = export_ply(poser, pose_for_export(poser, None, 0), out)
     assert n == fake_run.avatar.num_gaussians
     v = plyfile.PlyData.read(str(out))["vertex"]
     assert v.count == n and [p.name for p in v.properties][-8:] == [
@@ -108,15 +109,15 @@ def test_export_round_trip_matches_avatar_render(fake_run, tmp_path):
 
 def test_export_motion_frame(fake_run, tmp_path):
     motion = write_motion(tmp_path / "m.npz")
-    seq = pose_for_export(str(motion), 4)
-    export_ply(fake_run, seq, tmp_path / "f4.ply")
+    poser = Poser.from_run(fake_run)
+    export_ply(poser, pose_for_export(poser, str(motion), 4), tmp_path / "f4.ply")
     poses, trans = dance()
     verts = fake_run.body(None, torch.tensor(poses[4:5, :3]), torch.tensor(poses[4:5, 3:]),
                           torch.tensor(trans[4:5])).vertices[0]
     ref = fake_run.avatar.world_gaussians(verts, torch.tensor(poses[4, 3:]))
     torch.testing.assert_close(read_ply(tmp_path / "f4.ply").means, ref.means, atol=1e-6, rtol=0)
     with pytest.raises(UserError, match="out of range"):
-        pose_for_export(str(motion), 6)
+        pose_for_export(poser, str(motion), 6)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f4.ply", "m.npz"]
 
 

@@ -190,7 +190,8 @@ def test_turntable_trained_run(trained_run, tmp_path):
     if "render" not in COMMANDS:
         pytest.skip("the render command is not registered yet")
     out = tmp_path / "turn.mp4"
-    code = main(["render", str(trained_run), "--turntable", "--out", str(out), "--size", "48", "--frames", "12"])
+    code = main(["render", str(trained_run), "--turntable", "--out", str(out), "--size", "48", "--frames", "12",
+                 "--pose", "train"])
     assert code == 0
     keep(out)
     frames = read_video(out)
@@ -238,3 +239,14 @@ def test_view_command_in_headless_chromium(trained_run, tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def test_training_pose_is_the_subjects_a_pose(trained_run):
+    from rmavatar.animate.drive import Poser
+    from rmavatar.data.synth.motion import A_POSE_DEG
+    from rmavatar.train import load_run
+
+    pose = Poser.from_run(load_run(trained_run)).rest_pose("train").body_pose[0]
+    # the synthetic subject turns in an A-pose: shoulders (SMPL joints 16/17) lowered by A_POSE_DEG
+    assert abs(float(pose[15 * 3 + 2]) + math.radians(A_POSE_DEG)) < math.radians(10)
+    assert abs(float(pose[16 * 3 + 2]) - math.radians(A_POSE_DEG)) < math.radians(10)

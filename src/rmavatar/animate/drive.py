@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rmavatar.animate.motion import PoseSequence
+from rmavatar.animate.motion import PoseSequence, rest_pose
 from rmavatar.utils import UserError
 
 
@@ -24,11 +24,30 @@ class Poser:
     avatar: Any
     body: Any
     betas: torch.Tensor | None = None
+    data_spec: str | None = None  # the training data, for the 'train' rest pose
 
     @classmethod
     def from_run(cls, run) -> "Poser":
         """From a ``LoadedRun``; the shape is the run's (``run.betas``, else the training data's)."""
-        return cls(run.avatar, run.body, run_betas(run))
+        return cls(run.avatar, run.body, run_betas(run), getattr(run, "data_spec", None))
+
+    def rest_pose(self, kind: str = "tpose") -> PoseSequence:
+        """A one-frame standing pose at the origin: 'tpose' (zero pose), 'apose' (arms down 45 degrees)
+        or 'train' (the median body pose of the training frames, facing +z)."""
+        if kind != "train":
+            go, pose = rest_pose(kind)
+        else:
+            if not self.data_spec:
+                raise UserError("--pose train needs the run's training data, and this run names none")
+            from rmavatar.data import load_dataset
+
+            try:
+                poses = np.asarray(load_dataset(self.data_spec).params("train")["body_pose"], np.float32)
+            except UserError as exc:
+                raise UserError(f"--pose train reads the run's training data {self.data_spec!r}, which "
+                                f"cannot be read: {exc}") from None
+            go, pose = torch.zeros(3), torch.from_numpy(np.median(poses, axis=0))
+        return PoseSequence(go[None], pose[None], torch.zeros(1, 3))
 
     @property
     def device(self) -> torch.device:

@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from rmavatar.animate.camera import framing_distance, intrinsics, orbit_viewmats, preset_viewmat
 from rmavatar.animate.drive import Poser, render_image
-from rmavatar.animate.motion import PoseSequence, recenter_motion, rest_pose
+from rmavatar.animate.motion import PoseSequence, recenter_motion
 from rmavatar.animate.video import frame_writer, to_uint8
 
 
@@ -82,12 +82,12 @@ def animate_video(poser: Poser, seq: PoseSequence, out: str | os.PathLike, camer
 
 def turntable_video(poser: Poser, out: str | os.PathLike, num_frames: int = 90, pose: str = "tpose",
                     opts: VideoOptions | None = None, elevation_deg: float = 0.0) -> int:
-    """A 360-degree orbit around the avatar standing in a rest pose ('tpose' or 'apose') into ``out``."""
+    """A 360-degree orbit around the avatar standing in a rest pose ('tpose', 'apose' or 'train', see
+    :meth:`Poser.rest_pose`) into ``out``."""
     opts = opts or VideoOptions()
-    go, body_pose = rest_pose(pose)
-    seq = PoseSequence(go[None], body_pose[None], torch.zeros(1, 3))
+    seq = poser.rest_pose(pose)
     verts = poser.vertices(seq)
-    gs = poser.gaussians(verts[0], body_pose)
+    gs = poser.gaussians(verts[0], seq.body_pose[0])
     width, height = _frame_size(opts)
     K = intrinsics(width, height, opts.fov_deg)
     center, distance = frame_the_body(verts, opts)

@@ -16,8 +16,9 @@ def add_turntable_arguments(parser: argparse.ArgumentParser) -> None:
                             "for PNG frames")
     group.add_argument("--frames", type=int, default=90, metavar="N", help="turntable frames (default 90)")
     group.add_argument("--fps", type=float, default=30.0, help="turntable frame rate (default 30)")
-    group.add_argument("--pose", choices=("tpose", "apose"), default="tpose",
-                       help="the avatar's pose: tpose (the canonical zero pose, default) or apose (arms lowered)")
+    group.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+                       help="the avatar's pose: tpose (the canonical zero pose, default), apose (arms lowered 45 "
+                            "degrees) or train (the median pose of the training frames, e.g. their A-pose)")
     group.add_argument("--elevation", type=float, default=0.0, help="camera height angle in degrees (default 0)")
     group.add_argument("--fov", type=float, default=30.0, help="vertical field of view in degrees (default 30)")
     parser.epilog = (parser.epilog or "") + (

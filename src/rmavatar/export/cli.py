@@ -23,19 +23,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motion", metavar="FILE", default=None, help="pose the avatar with a frame of this motion")
     parser.add_argument("--frame", type=int, default=0, metavar="K",
                         help="frame of --motion (default 0; negative counts from the end)")
-    parser.add_argument("--pose", choices=("tpose", "apose"), default="tpose",
-                        help="rest pose when no --motion is given (default tpose: the zero pose)")
+    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+                        help="pose when no --motion is given: tpose (the zero pose, default), apose (arms down "
+                             "45 degrees) or train (the median pose of the training frames)")
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from rmavatar.animate.drive import Poser
     from rmavatar.export.export import check_ply_output, export_ply, pose_for_export
     from rmavatar.train import load_run
 
     out = check_ply_output(Path(args.ply))
     run_ = load_run(args.run)
-    seq = pose_for_export(args.motion, args.frame, args.pose)
-    n = export_ply(run_, seq, out)
+    poser = Poser.from_run(run_)
+    n = export_ply(poser, pose_for_export(poser, args.motion, args.frame, args.pose), out)
     print(f"wrote {n} Gaussians to {out}")
     return 0

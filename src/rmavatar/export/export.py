@@ -5,10 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import torch
-
 from rmavatar.animate.drive import Poser
-from rmavatar.animate.motion import PoseSequence, motion_to_sequence, rest_pose
+from rmavatar.animate.motion import PoseSequence, motion_to_sequence
 from rmavatar.export.ply import write_ply
 from rmavatar.utils import UserError
 
@@ -27,11 +25,11 @@ def check_ply_output(path: Path) -> Path:
     return path
 
 
-def pose_for_export(motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
-    """One pose: frame ``frame`` of a motion file, else the rest pose ``rest`` at the origin."""
+def pose_for_export(poser: Poser, motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
+    """One pose: frame ``frame`` of a motion file, else the rest pose ``rest`` at the origin
+    ('tpose', 'apose' or 'train', see :meth:`Poser.rest_pose`)."""
     if motion_path is None:
-        go, pose = rest_pose(rest)
-        return PoseSequence(go[None], pose[None], torch.zeros(1, 3))
+        return poser.rest_pose(rest)
     from rmavatar.body import load_motion
 
     seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
@@ -42,9 +40,8 @@ def pose_for_export(motion_path: str | None, frame: int, rest: str = "tpose") ->
     return seq.select(slice(k, k + 1))
 
 
-def export_ply(run, seq: PoseSequence, out: str | os.PathLike) -> int:
-    """Write the avatar of ``run`` (a LoadedRun) posed by the single pose ``seq`` to ``out``; returns N."""
-    poser = Poser.from_run(run)
+def export_ply(poser: Poser, seq: PoseSequence, out: str | os.PathLike) -> int:
+    """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count."""
     gs = poser.gaussians(poser.vertices(seq)[0], seq.body_pose[0])
     write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)
     return int(gs.means.shape[0])

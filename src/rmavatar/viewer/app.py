@@ -140,11 +140,10 @@ def avatar_viewer(poser, seq=None, fps: float = 30.0, host: str = "127.0.0.1", p
     """Start a viewer for ``poser`` (rmavatar.animate.drive.Poser) playing the PoseSequence ``seq``
     (re-centred like ``animate``), or standing in the rest pose ``rest`` when ``seq`` is None."""
     from rmavatar.animate.jobs import VideoOptions, frame_the_body
-    from rmavatar.animate.motion import PoseSequence, recenter_motion, rest_pose
+    from rmavatar.animate.motion import recenter_motion
 
     if seq is None:
-        go, pose = rest_pose(rest)
-        seq = PoseSequence(go[None], pose[None], torch.zeros(1, 3))
+        seq = poser.rest_pose(rest)
     else:
         seq = recenter_motion(seq, poser.root_rest())
     sample = seq.select(sorted({round(i * (len(seq) - 1) / 15) for i in range(min(len(seq), 16))}))

@@ -22,8 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", metavar="RUN", help="a training run folder (holds checkpoints/last.pt)")
     parser.add_argument("--motion", metavar="FILE", default=None, help="motion file to play (.npz or .npy)")
     parser.add_argument("--frames", metavar="A:B", default=None, help="motion frames to use (python slice rules)")
-    parser.add_argument("--pose", choices=("tpose", "apose"), default="tpose",
-                        help="rest pose shown without --motion (default tpose)")
+    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+                        help="pose shown without --motion: tpose (default), apose, or train (the median "
+                             "training pose)")
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for all)")
