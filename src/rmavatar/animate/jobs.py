@@ -10,7 +10,7 @@ import torch
 from tqdm import tqdm
 
 from rmavatar.animate.camera import framing_distance, intrinsics, orbit_viewmats, preset_viewmat
-from rmavatar.animate.drive import Poser, render_image
+from rmavatar.animate.drive import Poser, even_size, render_image
 from rmavatar.animate.motion import PoseSequence, recenter_motion
 from rmavatar.animate.video import frame_writer, to_uint8
 
@@ -29,8 +29,6 @@ class VideoOptions:
 
 
 def _frame_size(opts: VideoOptions) -> tuple[int, int]:
-    from rmavatar.animate.drive import even_size
-
     return even_size(opts.size, opts.aspect)
 
 
