@@ -1,7 +1,7 @@
 """End to end on a small trained run: ``rmavatar export / animate / render --turntable / view``.
 
 The run is trained once per session (a tiny synthetic subject, 32x32, a few iterations) by the
-``trained_run`` fixture. Set RMAVATAR_KEEP_OUTPUTS=DIR to keep the videos, PLYs and screenshots.
+``trained_run`` fixture. Set RMAVATAR_KEEP_OUTPUTS=DIR to keep the videos and PLYs.
 """
 
 import math
@@ -203,12 +203,10 @@ def test_turntable_trained_run(trained_run, tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- view
-def test_view_command_in_headless_chromium(trained_run, tmp_path):
-    from rmavatar.viewer.headless import find_browser, screenshot
+def test_view_command_serves_the_page(trained_run, tmp_path):
+    """``rmavatar view`` starts and serves viser's page (the browser test is in test_viewer.py)."""
+    import urllib.request
 
-    browser = find_browser()
-    if browser is None:
-        pytest.skip("no chromium binary found: run scripts/install-browser.sh (or set RMAVATAR_CHROMIUM)")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -222,20 +220,9 @@ def test_view_command_in_headless_chromium(trained_run, tmp_path):
             lines.append(proc.stdout.readline())
             assert lines[-1] or proc.poll() is None, "rmavatar view exited early:\n" + "".join(lines)
             assert time.monotonic() < deadline, "rmavatar view did not start:\n" + "".join(lines)
-        w, h = 800, 600
-
-        def middle(img):
-            mid = img[h // 4: 3 * h // 4, w // 2 - 150: w // 2 + 100].astype(int)
-            return np.abs(mid - 255).max(-1) > 40
-
-        (shot,) = screenshot(f"http://127.0.0.1:{port}/", w, h, timeout=90, browser=browser,
-                             ready=lambda img: middle(img).mean() > 0.02, settle=1.5)
-        target = os.environ.get("RMAVATAR_KEEP_OUTPUTS")
-        if target:
-            from PIL import Image
-
-            Image.fromarray(shot).save(Path(target) / "view_trained.png")
-        assert middle(shot).mean() > 0.02, "the avatar is not visible in the browser"
+        served = int(lines[-1].split("http://localhost:")[1].split()[0])
+        with urllib.request.urlopen(f"http://127.0.0.1:{served}/", timeout=30) as resp:
+            assert resp.status == 200 and b"<html" in resp.read().lower()
     finally:
         proc.terminate()
         proc.wait(timeout=30)

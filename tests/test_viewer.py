@@ -1,4 +1,5 @@
-"""The viser viewer: served on a free localhost port, opened in a real headless Chromium, screenshotted.
+"""The viser viewer of a small trained run: served on a free localhost port, opened in a real headless
+Chromium, screenshotted while the camera presets and the timeline are used.
 
 Needs a chromium binary (``scripts/install-browser.sh``); without one the browser test is skipped.
 Set RMAVATAR_VIEWER_SHOTS=DIR to keep the screenshots for looking at.
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_animate_avatar import dance, fake_run  # noqa: F401 - fake_run is a fixture
+from test_animate_avatar import dance
+from test_animate_e2e import trained_run  # noqa: F401 - a session fixture: the small trained run
 
 from rmavatar.animate.drive import Poser
 from rmavatar.animate.motion import motion_to_sequence
@@ -52,10 +54,12 @@ def test_splat_arrays_match_3dgs_definitions():
 
 
 @pytest.fixture
-def viewer(fake_run):  # noqa: F811
+def viewer(trained_run):  # noqa: F811
+    from rmavatar.train import load_run
+
     poses, trans = dance(n=6, drift=3.0)
     seq = motion_to_sequence(Motion(poses[:, :3], poses[:, 3:], trans, fps=30.0))
-    v = avatar_viewer(Poser.from_run(fake_run), seq, fps=30.0, port=free_port())
+    v = avatar_viewer(Poser.from_run(load_run(trained_run)), seq, fps=30.0, port=free_port())
     yield v
     v.close()
 
