@@ -10,7 +10,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Export a trained avatar as a standard 3DGS PLY (world-space positions, log-scales and rotations, "
         "opacity logits, SH colours) that stock 3DGS viewers open. The avatar stands in its canonical "
-        "pose (zero pose: T-pose), an A-pose, or frame K of a motion file, with the rectifier applied."
+        "pose (zero pose: T-pose), an A-pose, its training pose, or frame K of a motion file, with the rectifier "
+        "applied."
     )
     parser.epilog = (
         "examples:\n"

@@ -25,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
                         help="pose shown without --motion: tpose (default), apose, or train (the median "
                              "training pose)")
-    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    parser.add_argument("--port", type=int, default=8080,
+                        help="port to serve on (default 8080; when taken, the next free port is used)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for all)")
 
