@@ -68,6 +68,10 @@ def test_viewer_timeline_and_play(viewer):
     before = viewer.splats.buffer.copy()
     viewer.frame_slider.value = 2  # (frame 3 repeats frame 0's pose: the dance is periodic)
     assert viewer._shown == 2 and not np.array_equal(before, viewer.splats.buffer)
+    at2 = viewer.splats.buffer.copy()
+    viewer.frame_slider.value = 0
+    viewer.frame_slider.value = 2  # from the cache: the same splats
+    np.testing.assert_array_equal(viewer.splats.buffer, at2)
     viewer.speed.value = 60.0
     viewer.play.value = True
     time.sleep(0.6)

@@ -19,6 +19,7 @@ import torch
 FrameFn = Callable[[int], tuple]
 
 SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic
+CACHE_BYTES = 512 * 2**20  # memory for evaluated timeline frames (~1.6 MB a frame for 25k Gaussians)
 
 
 def splat_arrays(means, quats, scales, opacities, sh) -> dict[str, np.ndarray]:
@@ -67,6 +68,7 @@ class AvatarViewer:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._shown = -1
+        self._cache: dict[int, dict[str, np.ndarray]] = {}
 
         front = self._preset_pose("front")
         self.server.initial_camera.position = front[0]
@@ -115,7 +117,14 @@ class AvatarViewer:
         with self._lock:
             if index == self._shown:
                 return
-            self.splats.set_gaussians(**splat_arrays(*self.state.frame_fn(index)))
+            arrays = self._cache.get(index)
+            if arrays is None:
+                arrays = splat_arrays(*self.state.frame_fn(index))
+                per_frame = sum(a.nbytes for a in arrays.values())
+                # evaluating the avatar takes ~0.1 s a frame on a CPU: keep frames so loops replay smoothly
+                if (len(self._cache) + 1) * per_frame <= CACHE_BYTES:
+                    self._cache[index] = arrays
+            self.splats.set_gaussians(**arrays)
             self._shown = index
 
     def _play_loop(self) -> None:
