@@ -37,3 +37,18 @@ def test_atomic_dir(tmp_path):
     with atomic_dir(target) as tmp:
         (tmp / "a").write_text("x")
     assert (target / "a").read_text() == "x"
+
+
+def test_atomic_outputs_follow_the_umask(tmp_path):
+    import os
+
+    old = os.umask(0o022)
+    try:
+        with atomic_path(tmp_path / "f.bin") as tmp:
+            tmp.write_bytes(b"x")
+        with atomic_dir(tmp_path / "d"):
+            pass
+    finally:
+        os.umask(old)
+    assert (tmp_path / "f.bin").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "d").stat().st_mode & 0o777 == 0o755
