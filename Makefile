@@ -24,6 +24,7 @@ demo: setup
 	$(VENV)/bin/rmavatar demo --out demo_out
 
 test: setup
+	sh scripts/install-browser.sh  # Chromium for the viewer's browser test (Debian package)
 	$(PY) -m pytest -q tests
 
 bench: setup

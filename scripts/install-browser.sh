@@ -21,7 +21,7 @@ fi
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then
     if command -v sudo >/dev/null 2>&1; then
-        SUDO="sudo"
+        SUDO="sudo -n"
     else
         echo "install-browser: need root to apt-get install chromium; the viewer browser test will be skipped" >&2
         exit 0
