@@ -20,10 +20,10 @@ fi
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then
-    if command -v sudo >/dev/null 2>&1; then
+    if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
         SUDO="sudo -n"
     else
-        echo "install-browser: need root to apt-get install chromium; the viewer browser test will be skipped" >&2
+        echo "install-browser: need root (or password-less sudo) to apt-get install chromium; the viewer browser test will be skipped" >&2
         exit 0
     fi
 fi
