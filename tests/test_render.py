@@ -305,8 +305,8 @@ def test_gsplat_backend_plumbing_with_a_stand_in(monkeypatch):
     import types
 
     from rmavatar.render import gsplat_backend
-    from rmavatar.render.cpu import composite
-    from rmavatar.render.project import project_gaussians, sh_to_rgb
+    from rmavatar.render.cpu import composite, project
+    from rmavatar.render.project import sh_to_rgb
 
     def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
                            near_plane, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode,
@@ -314,7 +314,7 @@ def test_gsplat_backend_plumbing_with_a_stand_in(monkeypatch):
         assert (near_plane, eps2d, packed, tile_size, render_mode, rasterize_mode) == (
             0.01, 0.3, False, 16, "RGB", "classic")
         assert means.dtype == torch.float32 and viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
-        proj = project_gaussians(means, quats, scales, opacities, viewmats[0], Ks[0], width, height)
+        proj = project(means, quats, scales, opacities, viewmats[0], Ks[0], width, height)
         means2d_c = proj.means2d[None]  # gsplat composites with the batched [C,N,2] tensor
         campos = -viewmats[0, :3, :3].T @ viewmats[0, :3, 3]
         rgb = sh_to_rgb(colors, sh_degree, means, campos) if sh_degree is not None else colors
@@ -343,3 +343,33 @@ def test_gsplat_backend_plumbing_with_a_stand_in(monkeypatch):
     assert torch.equal(info2["radii"], info1["radii"]) and torch.equal(info2["visible"], info1["visible"])
     assert info2["means2d"].shape == (40, 2)
     torch.testing.assert_close(info2["means2d"].grad, info1["means2d"].grad)
+
+
+def test_numba_projection_matches_torch_statement():
+    """The fused Numba projection (values and analytic gradients) against the readable PyTorch one."""
+    from rmavatar.render.cpu import project
+    from rmavatar.render.project import project_gaussians
+
+    params, viewmat, K, w, h = _scene(200, 20, width=50, height=30)
+    params["means"][:20, 2] -= 4.0  # some behind the camera
+    params["means"][20:40, 0] += 6.0  # some far off to the side (frustum clamp)
+    g = torch.Generator().manual_seed(3)
+    wts = [torch.randn(200, k, generator=g, dtype=F64) for k in (2, 3, 1)]
+    out = {}
+    for name, fn in (("numba", project), ("torch", project_gaussians)):
+        p = {k: params[k].clone().requires_grad_(True) for k in ("means", "quats", "scales")}
+        proj = fn(p["means"], p["quats"], p["scales"], params["opacities"], viewmat, K, w, h)
+        vis = proj.visible
+        loss = ((proj.means2d * wts[0])[vis].sum() + (proj.conics * wts[1])[vis].sum()
+                + (proj.depths * wts[2][:, 0]).sum())
+        loss.backward()
+        out[name] = (proj, {k: v.grad for k, v in p.items()})
+    (pn, gn), (pt, gt) = out["numba"], out["torch"]
+    assert torch.equal(pn.visible, pt.visible) and torch.equal(pn.radii_xy, pt.radii_xy)
+    assert 50 < pn.visible.sum() < 200
+    v = pn.visible
+    torch.testing.assert_close(pn.means2d[v], pt.means2d[v], atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(pn.conics[v], pt.conics[v], atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(pn.depths, pt.depths, atol=1e-12, rtol=0)
+    for k in gn:
+        torch.testing.assert_close(gn[k], gt[k], atol=1e-9, rtol=1e-9, msg=lambda m: f"d/d{k}: {m}")

@@ -8,8 +8,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rmavatar.render import kernels
+from rmavatar.render import kernels, kernels_project
 from rmavatar.render._numba import numba
+from rmavatar.render.project import Projection
 
 
 def _np64(t: Tensor) -> np.ndarray:
@@ -65,6 +66,47 @@ class _Composite(torch.autograd.Function):
         per_g = torch.from_numpy(kernels.sum_per_gaussian(grads, b.ids, n))
         grads = (per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5:8], per_g[:, 8], torch.from_numpy(v_bg))
         return tuple(g.to(ctx.device, d) for g, d in zip(grads, ctx.dtypes)) + (None,)
+
+
+class _Project(torch.autograd.Function):
+    """(means [N,3], quats [N,4], scales [N,3]) -> means2d [N,2], conics [N,3], depths [N], plus
+    radii_xy [N,2] and visible [N] (not differentiable); opacities only shape the pixel box."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height):
+        arrays = (_np64(means), _np64(quats), _np64(scales))
+        view, intr = _np64(viewmat), _np64(K)
+        means2d, conics, depths, radii, visible, has_2d = kernels_project.project_forward(
+            *arrays, _np64(opacities), view, intr, width, height
+        )
+        ctx.saved = (arrays, view, intr, width, height, conics, has_2d)
+        ctx.dtypes = [t.dtype for t in (means, quats, scales)]
+        ctx.device = means.device
+        dev, dt = means.device, means.dtype
+        radii_t = torch.from_numpy(radii).to(dev)
+        visible_t = torch.from_numpy(visible).to(dev)
+        ctx.mark_non_differentiable(radii_t, visible_t)
+        return (
+            torch.from_numpy(means2d).to(dev, dt), torch.from_numpy(conics).to(dev, dt),
+            torch.from_numpy(depths).to(dev, dt), radii_t, visible_t,
+        )
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_radii, _v_visible):
+        arrays, view, intr, width, height, conics, has_2d = ctx.saved
+        grads = kernels_project.project_backward(
+            *arrays, view, intr, width, height, conics, has_2d, _np64(v_means2d), _np64(v_conics), _np64(v_depths)
+        )
+        out = tuple(torch.from_numpy(g).to(ctx.device, d) for g, d in zip(grads, ctx.dtypes))
+        return out + (None, None, None, None, None)
+
+
+def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+            width: int, height: int) -> Projection:
+    """Numba version of ``project.project_gaussians`` (same rules and outputs), with an analytic
+    backward w.r.t. means, quats and scales."""
+    means2d, conics, depths, radii, visible = _Project.apply(means, quats, scales, opacities, viewmat, K, width, height)
+    return Projection(means2d, conics, depths, radii, visible)
 
 
 def composite(

@@ -1,5 +1,9 @@
 """EWA projection of 3D Gaussians and spherical-harmonics colours, in plain differentiable PyTorch.
 
+The SH colours here are what the CPU backend uses. ``project_gaussians`` is the readable statement of
+the projection rules: the CPU backend runs the fused Numba version (``kernels_project``), which the
+tests check against this one.
+
 Follows gsplat 1.5's pinhole "classic" rules so the CPU and CUDA backends draw the same picture:
 OpenCV camera (x right, y down, z forward), world-to-camera ``viewmat``, wxyz quaternions normalised
 here, 0.3 px^2 low-pass dilation of the 2D covariance, near plane 0.01, and an opacity-aware

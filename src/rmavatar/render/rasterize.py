@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from rmavatar.render.project import project_gaussians, sh_to_rgb
+from rmavatar.render.project import sh_to_rgb
 from rmavatar.utils import UserError
 
 BACKENDS = ("auto", "cpu", "gsplat")
@@ -98,12 +98,12 @@ def rasterize(
             means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree
         )
 
-    from rmavatar.render.cpu import composite
+    from rmavatar.render.cpu import composite, project
 
     dtype = means.dtype
     viewmat = viewmat.to(dtype)
     K = K.to(dtype)
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height)
+    proj = project(means, quats, scales, opacities, viewmat, K, width, height)
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
         rgb = sh_to_rgb(colors, sh_degree, means, campos)
