@@ -1,4 +1,4 @@
-"""CPU backend: tile binning and compositing in Numba, wrapped as a torch autograd function."""
+"""CPU backend: projection, tile binning and compositing in Numba, wrapped as torch autograd functions."""
 
 from __future__ import annotations
 
