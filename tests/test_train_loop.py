@@ -64,22 +64,30 @@ def _mean_train_psnr(avatar, trainer) -> float:
 
 
 def test_training_raises_psnr_well_above_the_start(data, tmp_path):
+    """The full model (rectifier, all losses, density control on the run-length-scaled schedule) through
+    the real command line. Measured on this subject: 17.1 dB untrained -> 24.4 dB after 200
+    iterations (22.2 dB after 150; the opacity resets of the scaled schedule dip it in between)."""
     iters = 200
-    result = train(_cfg(data, iters, preview_every=100), tmp_path / "run", progress=False)
-    assert result.iteration == iters and not result.interrupted
-    # Reference frames and cameras as the trainer sees them.
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", str(iters),
+           "--size", str(SIZE), "--threads", "1"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "psnr=" in proc.stderr and "N=" in proc.stderr  # the progress bar reports them
     probe = _Trainer(_cfg(data, iters), tmp_path / "probe", None, progress=False)
     probe._setup()
     before = _mean_train_psnr(probe.avatar, probe)  # the untrained (grey) avatar
-    loaded = load_run(tmp_path / "run")
+    loaded = load_run(run)
     after = _mean_train_psnr(loaded.avatar, probe)
     print(f"mean training PSNR: {before:.2f} dB untrained -> {after:.2f} dB after {iters} iterations")
     assert after - before >= 6.0
     assert after >= 22.0
     assert loaded.iteration == iters and loaded.data_spec == probe.cfg.data.path
     assert loaded.avatar.num_gaussians == loaded.avatar.face_ids.shape[0]
-    assert (tmp_path / "run" / "config.yaml").is_file()
-    assert sorted(p.name for p in (tmp_path / "run" / "previews").iterdir()) == ["iter_000100.png", "iter_000200.png"]
+    assert loaded.avatar.num_gaussians > probe.avatar.num_gaussians  # densification ran
+    assert (run / "config.yaml").is_file() and list((run / "tb").iterdir())
+    previews = sorted(p.name for p in (run / "previews").iterdir())
+    assert previews[-1] == f"iter_{iters:06d}.png"
 
 
 def _interrupt_at(monkeypatch, k):

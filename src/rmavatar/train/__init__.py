@@ -1,13 +1,26 @@
-"""Training: config, the loop, checkpoints, and ``load_run`` for the commands that use a trained avatar."""
+"""Training: config, the loop, checkpoints, and ``load_run`` for the commands that use a trained avatar.
 
-from rmavatar.train.checkpoint import LoadedRun, load_run
-from rmavatar.train.config import TrainConfig, load_config, save_config
+Names are imported lazily, so ``rmavatar train`` can configure threading before torch loads.
+"""
 
-__all__ = ["LoadedRun", "TrainConfig", "load_config", "load_run", "save_config", "train"]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "LoadedRun": "rmavatar.train.checkpoint",
+    "load_run": "rmavatar.train.checkpoint",
+    "TrainConfig": "rmavatar.train.config",
+    "load_config": "rmavatar.train.config",
+    "save_config": "rmavatar.train.config",
+    "train": "rmavatar.train.trainer",
+    "TrainResult": "rmavatar.train.trainer",
+}
+
+__all__ = sorted(_EXPORTS)
 
 
-def train(*args, **kwargs):
-    """See :func:`rmavatar.train.trainer.train` (imported lazily: it pulls in the renderer)."""
-    from rmavatar.train.trainer import train as _train
-
-    return _train(*args, **kwargs)
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'rmavatar.train' has no attribute {name!r}")
