@@ -251,3 +251,23 @@ def test_with_the_real_rasterizer():
     img.square().mean().backward()
     opt.step()
     assert all(p.grad is not None for p in av.gaussian_parameters().values())
+
+
+def test_controller_state_round_trip_gives_identical_splits():
+    def setup():
+        av, _ = make(n=150)
+        ctl = DensityController(av, None, DensitySchedule(start=1, every=1, stop=10, reset_start=99, reset_every=99),
+                                percent_dense=0.0, seed=5)
+        return av, ctl
+
+    a, ca = setup()
+    ca.densify_and_prune()  # advances the split sampler
+    b, cb = setup()
+    b.load_state_dict(a.state_dict())
+    cb.load_state_dict(ca.state_dict())
+    for av, ctl in ((a, ca), (b, cb)):
+        m = torch.zeros(av.num_gaussians, 2, requires_grad=True)
+        m.grad = torch.full((av.num_gaussians, 2), 1e-3)
+        ctl.after_step(1, {"means2d": m, "visible": torch.ones(av.num_gaussians, dtype=torch.bool)}, 32, 32)
+    assert a.num_gaussians == b.num_gaussians > 150
+    assert torch.equal(a.means, b.means) and torch.equal(a.face_ids, b.face_ids)
