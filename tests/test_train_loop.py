@@ -118,13 +118,15 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
     assert a.keys() == b.keys()
     assert a["means"].shape[0] != 0
     assert a["means"].shape == b["means"].shape  # same densification decisions
+    # One thread: every kernel is deterministic, so the two runs agree bit for bit.
     for key in a:
-        assert torch.allclose(a[key].double(), b[key].double(), rtol=1e-5, atol=1e-6), key
+        assert torch.equal(a[key], b[key]), key
     oa = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "straight"))["optimizer"]["state"]
     ob = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "split"))["optimizer"]["state"]
+    assert oa.keys() == ob.keys()
     for idx in oa:
-        assert int(oa[idx]["step"]) == int(ob[idx]["step"])
-        assert torch.allclose(oa[idx]["exp_avg_sq"], ob[idx]["exp_avg_sq"], rtol=1e-4, atol=1e-12)
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(oa[idx][key], ob[idx][key]), (idx, key)
 
 
 def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_path):

@@ -135,7 +135,8 @@ def build_avatar(body, cfg: TrainConfig, state: dict | None = None):
         return Avatar.from_state(body, state)
     m = cfg.model
     return Avatar.from_body(body, AvatarConfig(
-        sh_degree=m.sh_degree, rectifier=m.rectifier, coarse_to_fine=m.coarse_to_fine, placement=m.placement,
+        sh_degree=m.sh_degree, rectifier=m.rectifier, coarse_to_fine=m.coarse_to_fine,
+        rectifier_precision=m.rectifier_precision, placement=m.placement,
         num_gaussians=m.num_gaussians, init_opacity=m.init_opacity, seed=cfg.seed,
     ))
 
