@@ -115,14 +115,18 @@ def test_run_dir_ownership(tmp_path):
     ck.prepare_run_dir(run, "/data/a", resume=False)
     assert json.loads((run / ck.MARKER).read_text())["data"] == "/data/a"
     ck.prepare_run_dir(run, "/data/a", resume=False)  # no checkpoint yet: starting over is fine
-    with pytest.raises(UserError, match="another dataset"):
-        ck.prepare_run_dir(run, "/data/b", resume=False)
+    ck.prepare_run_dir(run, "/data/b", resume=False)  # ... even with other data (a failed start)
+    assert json.loads((run / ck.MARKER).read_text())["data"] == "/data/b"
     with pytest.raises(UserError, match="no checkpoint"):
-        ck.prepare_run_dir(run, "/data/a", resume=True)
+        ck.prepare_run_dir(run, "/data/b", resume=True)
     ck.save_checkpoint(ck.checkpoint_path(run), {"iteration": 3})
     with pytest.raises(UserError, match="--resume"):
+        ck.prepare_run_dir(run, "/data/b", resume=False)
+    with pytest.raises(UserError, match="another dataset"):
         ck.prepare_run_dir(run, "/data/a", resume=False)
-    ck.prepare_run_dir(run, "/data/a", resume=True)
+    with pytest.raises(UserError, match="another dataset"):
+        ck.prepare_run_dir(run, "/data/a", resume=True)
+    ck.prepare_run_dir(run, "/data/b", resume=True)
 
 
 def test_checkpoint_io_and_rng(tmp_path):

@@ -53,11 +53,17 @@ def read_marker(run_dir: str | os.PathLike) -> dict | None:
     return data
 
 
+def _write_marker(run_dir: Path, data_spec: str) -> None:
+    with atomic_path(run_dir / MARKER) as tmp:
+        tmp.write_text(json.dumps({"format": "rmavatar-run", "version": 1, "data": data_spec}, indent=2))
+
+
 def prepare_run_dir(run_dir: str | os.PathLike, data_spec: str, resume: bool) -> None:
     """Create or check RUN before training writes anything into it.
 
-    A fresh run needs RUN absent, empty, or our own run of the same dataset without a checkpoint yet;
-    a folder with other files is someone else's and is never written into. ``--resume`` needs our run
+    A fresh run needs RUN absent, empty, or our own run without a checkpoint yet (a failed start); a
+    folder with other files is someone else's and is never written into, and a trained run (of this or
+    another dataset) is only continued with ``resume``. ``--resume`` needs our run
     of the same dataset with a checkpoint.
     """
     run_dir = Path(run_dir)
@@ -73,15 +79,17 @@ def prepare_run_dir(run_dir: str | os.PathLike, data_spec: str, resume: bool) ->
         if resume:
             raise UserError(f"--resume: {run_dir} holds no run to resume")
         run_dir.mkdir(parents=True, exist_ok=True)
-        with atomic_path(run_dir / MARKER) as tmp:
-            tmp.write_text(json.dumps({"format": "rmavatar-run", "version": 1, "data": data_spec}, indent=2))
+        _write_marker(run_dir, data_spec)
         return
-    if marker.get("data") != data_spec:
-        raise UserError(
-            f"--out {run_dir} holds a run of another dataset ({marker.get('data')!r}, not {data_spec!r}); "
-            "choose another folder"
-        )
     has_ckpt = checkpoint_path(run_dir).is_file()
+    if marker.get("data") != data_spec:
+        if has_ckpt or resume:
+            raise UserError(
+                f"--out {run_dir} holds a run of another dataset ({marker.get('data')!r}, not {data_spec!r}); "
+                "choose another folder"
+            )
+        # A start that failed before its first checkpoint (e.g. a wrong body path): nothing to keep.
+        _write_marker(run_dir, data_spec)
     if resume and not has_ckpt:
         raise UserError(f"--resume: {run_dir} has no checkpoint yet ({checkpoint_path(run_dir)} missing)")
     if not resume and has_ckpt:

@@ -259,6 +259,10 @@ def train(
         if not cfg.data.path:
             raise UserError("no dataset given (data.path is empty)")
         cfg.data.path = normalize_data_spec(cfg.data.path)
+    from rmavatar.data import load_dataset
+
+    # Open the dataset before RUN is touched, so a wrong path leaves nothing behind.
+    load_dataset(cfg.data.path, size=cfg.data.size).num_frames(cfg.data.split)
     prepare_run_dir(run_dir, cfg.data.path, resume)
     save_config(cfg, run_dir / "config.yaml")
     return _Trainer(cfg, run_dir, ckpt, progress).run()
@@ -306,6 +310,12 @@ class _Trainer:
         self.dataset = load_dataset(cfg.data.path, size=cfg.data.size)
         split = cfg.data.split
         n = self.dataset.num_frames(split)
+        # Keep every decoded training frame (image + mask, float32) in memory when it fits in 6 GB:
+        # re-reading large PNGs each step would cost more than a GPU step.
+        w, h = self.dataset.image_size
+        need_mb = n * w * h * 16 / 2**20 + 64
+        if need_mb > 1024:
+            self.dataset = load_dataset(cfg.data.path, size=cfg.data.size, cache_mb=min(need_mb, 6144))
         params = self.dataset.params(split)
         spec, gender = resolve_body(cfg, self.dataset)
         if self.ckpt is not None:
