@@ -422,6 +422,12 @@ class _Trainer:
         self._setup()
         cfg = self.cfg
         total = cfg.optim.iters
+        started = time.perf_counter()
+        start_iteration = self.iteration
+        if self.progress:
+            print(f"training on {self.vertices.shape[0]} frames of {cfg.data.path} ({cfg.data.split}) at "
+                  f"{self.width}x{self.height}, body {self.body_info['spec']}, {self.avatar.num_gaussians} "
+                  f"Gaussians, {self.device}, {torch.get_num_threads()} threads -> {self.run_dir}", flush=True)
         writer = _tensorboard(self.run_dir) if cfg.log.tensorboard else None
         history: list[dict] = []
         bad = 0
@@ -466,6 +472,12 @@ class _Trainer:
         if interrupted:
             print(f"interrupted at iteration {self.iteration}; checkpoint saved to {checkpoint_path(self.run_dir)} "
                   f"(continue with --resume)")
+        elif self.progress:
+            done = self.iteration - start_iteration
+            seconds = time.perf_counter() - started
+            last = f", last training PSNR {history[-1]['psnr']:.2f} dB" if history else ""
+            print(f"done: {done} iterations in {seconds:.0f} s ({done / max(seconds, 1e-9):.2f} it/s), "
+                  f"{self.avatar.num_gaussians} Gaussians{last}; checkpoint {checkpoint_path(self.run_dir)}")
         return TrainResult(self.iteration, interrupted, self.run_dir, history)
 
     def _report(self, out: dict, writer, history: list, bar) -> None:
