@@ -184,6 +184,28 @@ def set_threads(n: int) -> None:
     numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
 
 
+def keep_freed_memory() -> None:
+    """Let glibc keep freed heap memory for reuse instead of returning it to the OS.
+
+    A CPU step allocates and frees tens of MB of tensors; by default glibc serves the large ones with
+    fresh mmaps and trims the heap after frees, so every step pays page faults that zero the memory
+    again. Measured at 64x64: 5.8 s of 31 s in the kernel, 19 s instead of 27 s per 60 iterations with
+    this (peak RSS +7%). No-op where glibc's mallopt is not available.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
+    mallopt(M_MMAP_THRESHOLD, 32 * 2**20)  # glibc's largest allowed value on 64-bit
+    mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
+    mallopt(M_TOP_PAD, 256 * 2**20)
+
+
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -307,6 +329,7 @@ class _Trainer:
         cfg = self.cfg
         if cfg.threads > 0:
             set_threads(cfg.threads)
+        keep_freed_memory()
         self.dataset = load_dataset(cfg.data.path, size=cfg.data.size)
         split = cfg.data.split
         n = self.dataset.num_frames(split)
