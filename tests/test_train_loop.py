@@ -90,14 +90,14 @@ def test_training_raises_psnr_well_above_the_start(data, tmp_path):
     assert previews[-1] == f"iter_{iters:06d}.png"
 
 
-def _interrupt_at(monkeypatch, k):
-    """Deliver a real SIGINT to this process right after iteration k."""
+def _interrupt_at(monkeypatch, k, sig=signal.SIGINT):
+    """Deliver a real signal to this process right after iteration k."""
     original = _Trainer.step
 
     def step(self):
         out = original(self)
         if self.iteration + 1 == k:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), sig)
         return out
 
     monkeypatch.setattr(_Trainer, "step", step)
@@ -127,6 +127,14 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
     for idx in oa:
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(oa[idx][key], ob[idx][key]), (idx, key)
+
+
+def test_sigterm_also_saves_and_stops(data, tmp_path, monkeypatch):
+    _interrupt_at(monkeypatch, 2, signal.SIGTERM)
+    result = train(_cfg(data, 6), tmp_path / "run", progress=False)
+    assert result.interrupted and result.iteration == 2
+    assert ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))["iteration"] == 2
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers restored
 
 
 def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_path):

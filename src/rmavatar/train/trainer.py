@@ -228,17 +228,21 @@ class TrainResult:
 
 
 class _Interrupt:
-    """SIGINT sets a flag the loop checks after each step; a second Ctrl-C raises as usual."""
+    """SIGINT (Ctrl-C) and SIGTERM set a flag the loop checks after each step, so the run saves and
+    stops cleanly; a second signal raises KeyboardInterrupt as usual."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
         self.requested = False
-        self._previous = None
+        self._previous: dict = {}
 
     def __enter__(self):
-        try:
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        except ValueError:  # not the main thread: leave signals alone
-            self._previous = None
+        for sig in self.SIGNALS:
+            try:
+                self._previous[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not the main thread: leave signals alone
+                pass
         return self
 
     def _handle(self, signum, frame):
@@ -247,8 +251,8 @@ class _Interrupt:
         self.requested = True
 
     def __exit__(self, *exc):
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
         return False
 
 
