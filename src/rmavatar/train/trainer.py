@@ -440,7 +440,7 @@ class _Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         events = self.density.after_step(it, info, self.width, self.height)
-        return {"loss": float(loss.detach()), "psnr": psnr_value(image, target), "frame": i,
+        return {"loss": float(loss.detach()), "psnr": psnr_value(image, target), "frame": i, "lr_position": lr,
                 **{k: float(v) for k, v in parts.items()}, "events": events,
                 "image": image.detach(), "target": target}
 
@@ -520,6 +520,9 @@ class _Trainer:
                 if isinstance(v, float):
                     writer.add_scalar(f"train/{k}", v, it)
             writer.add_scalar("train/gaussians", n, it)
+        if writer:
+            for k, v in out["events"].items():  # density control: cloned / split / pruned counts, resets
+                writer.add_scalar(f"density/{k}", float(v), it)
         if it % cfg.log.preview_every == 0 or it == cfg.optim.iters:
             self._preview(out["image"], out["target"], it, writer)
 
