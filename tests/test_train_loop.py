@@ -235,3 +235,29 @@ def test_refuses_foreign_and_mismatched_runs(data, tmp_path):
         load_run(run)
     with pytest.raises(UserError, match="incompatible"):
         train(None, run, resume=True, progress=False)
+
+
+def test_ablations_and_backgrounds_run(data, tmp_path):
+    cfg = _cfg(data, 3)
+    cfg.model.rectifier = False
+    cfg.loss.offset = cfg.loss.scaling = 0.0
+    cfg.background = "random"
+    result = train(cfg, tmp_path / "norect", progress=False)
+    assert result.iteration == 3
+    loaded = load_run(tmp_path / "norect")
+    assert loaded.avatar.rectifier is None and not loaded.config.model.rectifier
+    groups = [g["name"] for g in ck.read_checkpoint(ck.checkpoint_path(tmp_path / "norect"))["optimizer"]["param_groups"]]
+    assert groups == ["position", "rotation", "scaling", "opacity", "sh_dc", "sh_rest"]
+    cfg = _cfg(data, 2)
+    cfg.background = "black"
+    assert train(cfg, tmp_path / "black", progress=False).iteration == 2
+
+
+def test_bench_step_measures_every_stage(data):
+    from rmavatar.bench.step import measure
+
+    res = measure(data, SIZE, steps=2, warmup=1, threads=1, device="cpu", gaussians=None, rectifier=True)
+    assert set(res["stages"]) == {"body_forward", "mesh_embedding", "rectifier", "rasterizer_forward",
+                                  "rasterizer_backward", "losses", "optimizer"}
+    assert res["step_median_s"] > 0 and res["gaussians"] > 20_000
+    assert all(v["wall_s"] > 0 for v in res["stages"].values())
