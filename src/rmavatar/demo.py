@@ -33,7 +33,10 @@ class DemoConfig:
     out: Path = Path("demo_out")
     seed: int = 0
     size: int = 256
-    iters: int = 3000
+    iters: int = 1000
+    # Densification would triple the count within the run (and the step time with it); the cap keeps the
+    # demo inside its CPU budget.
+    max_gaussians: int = 40_000
     threads: int | None = None
     video_size: int = 384
     animation_frames: int = 60
@@ -97,6 +100,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     tcfg.data.size = cfg.size
     tcfg.optim.iters = cfg.iters
     tcfg.seed = cfg.seed
+    tcfg.density.max_gaussians = cfg.max_gaussians
     if cfg.threads:
         tcfg.threads = cfg.threads
     result = train(tcfg, run_dir, progress=progress) if not (run_dir / "checkpoints").exists() else \

@@ -12,6 +12,7 @@ import importlib
 # name -> (module, one-line help). Add a row per benchmark.
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "raster": ("rmavatar.bench.raster", "rasterizer forward / forward+backward time, peak memory, Gaussians/s"),
+    "quality": ("rmavatar.bench.quality", "full model vs the paper's ablations: PSNR/SSIM/LPIPS on test and novel_pose, time"),
     "step": ("rmavatar.bench.step", "training iteration time at 256x256 (~25k Gaussians) and its breakdown by stage"),
 }
 

@@ -1,0 +1,147 @@
+"""``rmavatar bench quality``: the full model and the paper's three ablations, trained the same way.
+
+On one fixed synthetic subject (or a dataset you name), each variant is trained for the same number of
+iterations with the same seed, then scored on ``test`` (novel frames of the training motion) and
+``novel_pose`` (a motion never seen in training): PSNR / SSIM / LPIPS on full images over a white
+background, plus wall time, iterations per second and the final Gaussian count.
+
+Variants (paper §4.4): ``full``; ``no_rectifier`` ("w/o GauRec": Gaussians fixed to their faces);
+``no_offset_loss``; ``no_scaling_loss``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+from rmavatar.utils import UserError, atomic_path
+
+VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss")
+SPLITS = ("test", "novel_pose")
+
+
+def variant_config(variant: str, data: str, size: int, iters: int, seed: int, max_gaussians: int,
+                   threads: int, device: str):
+    """The TrainConfig of one variant: the paper's defaults with one switch flipped."""
+    from rmavatar.train import TrainConfig
+
+    cfg = TrainConfig()
+    cfg.data.path = data
+    cfg.data.size = size
+    cfg.optim.iters = iters
+    cfg.seed = seed
+    cfg.threads = threads
+    cfg.device = device
+    cfg.density.max_gaussians = max_gaussians
+    if variant == "no_rectifier":
+        cfg.model.rectifier = False
+    elif variant == "no_offset_loss":
+        cfg.loss.offset = 0.0
+    elif variant == "no_scaling_loss":
+        cfg.loss.scaling = 0.0
+    elif variant != "full":
+        raise UserError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+    return cfg
+
+
+def run_quality(work: Path, variants: list[str], data: str | None, size: int, iters: int, seed: int,
+                max_gaussians: int, threads: int, device: str, progress: bool = True) -> dict:
+    """Train and score every variant under ``work``; returns the result dict (also what --json writes)."""
+    from rmavatar.data.synth import SynthConfig, synthesize
+    from rmavatar.evaluate import evaluate_run
+    from rmavatar.train import train
+
+    work.mkdir(parents=True, exist_ok=True)
+    if data is None:
+        data_dir = work / f"synth-seed{seed}-{size}"
+        if not (data_dir / "meta.yaml").exists():
+            synthesize(data_dir, SynthConfig(size=size, seed=seed), progress=progress)
+        data = str(data_dir)
+    load_start = os.getloadavg()
+    rows = {}
+    for variant in variants:
+        run_dir = work / f"run-{variant}"
+        cfg = variant_config(variant, data, size, iters, seed, max_gaussians, threads, device)
+        print(f"\n== bench quality: {variant} ({iters} iterations at {size}px) -> {run_dir}", flush=True)
+        start = time.perf_counter()
+        if (run_dir / "checkpoints" / "last.pt").exists():
+            result = train(None, run_dir, resume=True, progress=progress)
+        else:
+            result = train(cfg, run_dir, progress=progress)
+        seconds = time.perf_counter() - start
+        row = {"iterations": result.iteration, "train_seconds": round(seconds, 1),
+               "iters_per_second": round(result.iteration / seconds, 3) if seconds > 0 else None,
+               "gaussians": result.history[-1]["gaussians"] if result.history else None}
+        for split in SPLITS:
+            res = evaluate_run(run_dir, split=split, bg="white", size=size, progress=progress)
+            row[split] = {k: res["mean"][k] for k in ("psnr", "ssim", "lpips")}
+        rows[variant] = row
+    return {
+        "benchmark": "quality",
+        "data": data,
+        "size": size,
+        "iterations": iters,
+        "seed": seed,
+        "max_gaussians": max_gaussians,
+        "protocol": "full images, white background, PSNR per image then averaged, SSIM 11x11 Gaussian "
+        "window (sigma 1.5), LPIPS AlexNet v0.1 on [-1,1] inputs, no test-time pose refinement",
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "device": device,
+                    "threads": threads, "load_start": load_start, "load_end": os.getloadavg()},
+        "variants": rows,
+    }
+
+
+def format_table(result: dict) -> str:
+    """A Markdown table of the result (the one BENCHMARKS.md shows)."""
+    lines = ["| variant | test PSNR | test SSIM | test LPIPS | novel-pose PSNR | novel-pose SSIM | "
+             "novel-pose LPIPS | train s | it/s | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in result["variants"].items():
+        t, n = r["test"], r["novel_pose"]
+        lines.append(f"| {name} | {t['psnr']:.2f} | {t['ssim']:.4f} | {t['lpips']:.4f} | {n['psnr']:.2f} | "
+                     f"{n['ssim']:.4f} | {n['lpips']:.4f} | {r['train_seconds']:.0f} | "
+                     f"{r['iters_per_second']:.2f} | {r['gaussians']} |")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = """examples:
+  rmavatar bench quality --json bench_quality.json              # CPU budget: 256px, 1000 iterations
+  rmavatar bench quality --iters 50000 --size 1080 --device cuda --data peoplesnapshot:DIR --json q.json
+  rmavatar bench quality --variants full no_rectifier --iters 300 --size 128
+"""
+    parser.add_argument("--json", metavar="FILE", help="write the results to this JSON file")
+    parser.add_argument("--work", type=Path, default=Path("bench_quality_runs"),
+                        help="folder for the dataset and the runs (default bench_quality_runs; reused on rerun)")
+    parser.add_argument("--data", default=None, help="dataset (default: the synthetic subject of --seed)")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS, metavar="V",
+                        help=f"which variants (default all: {' '.join(VARIANTS)})")
+    parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
+    parser.add_argument("--iters", type=int, default=1000, help="iterations per variant (default 1000)")
+    parser.add_argument("--seed", type=int, default=0, help="subject and training seed (default 0)")
+    parser.add_argument("--max-gaussians", type=int, default=40_000,
+                        help="densification cap (default 40000, as the demo; 0 = none)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu or cuda")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.json:  # fail now, not after an hour of training, if the result cannot be written
+        parent = Path(args.json).resolve().parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise UserError(f"cannot write --json {args.json}: folder {parent} is missing or not writable")
+    result = run_quality(args.work, args.variants, args.data, args.size, args.iters, args.seed,
+                         args.max_gaussians, args.threads, args.device, progress=not args.quiet)
+    table = format_table(result)
+    print("\n" + table)
+    if args.json:
+        with atomic_path(args.json) as tmp:
+            tmp.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"\nwrote {args.json}")
+    return 0
