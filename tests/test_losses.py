@@ -7,7 +7,8 @@ import torch
 import trimesh
 
 from rmavatar.avatar import Avatar, AvatarConfig, GaussianSet
-from rmavatar.train.losses import LossWeights, offset_loss, position_loss, scaling_loss, total_loss
+from rmavatar.train.config import LossConfig
+from rmavatar.train.losses import offset_loss, position_loss, scaling_loss, total_loss
 
 
 def test_position_loss_by_hand():
@@ -53,7 +54,7 @@ def test_total_loss_weights_and_switches():
     pos = (0 + 1 + 4 + 0) / 4
     scal = 0.9 / 4
     off = 0.01 + 0.0 + 0.04
-    loss, terms = total_loss(render, target, g, LossWeights(), lpips_fn, ssim_fn)
+    loss, terms = total_loss(render, target, g, LossConfig(), lpips_fn, ssim_fn)
     expect = 1.5 * 0.5 + 0.2 * 0.3 + 0.05 * 0.1 + 0.01 * pos + 1.0 * scal + 1.0 * off
     assert math.isclose(float(loss.detach()), expect, rel_tol=1e-5)
     assert set(terms) == {"l1", "ssim", "lpips", "pos", "scaling", "offset"}
@@ -64,20 +65,17 @@ def test_total_loss_weights_and_switches():
     def never(a, b):
         raise AssertionError("a term with weight 0 must not be computed")
 
-    loss, terms = total_loss(render, target, g, LossWeights(no_offset=True, no_scaling=True, lpips=0.0), never, ssim_fn)
+    loss, terms = total_loss(render, target, g, LossConfig(offset=0.0, scaling=0.0, lpips=0.0), never, ssim_fn)
     assert set(terms) == {"l1", "ssim", "pos"}
     assert math.isclose(float(loss.detach()), 1.5 * 0.5 + 0.2 * 0.3 + 0.01 * pos, rel_tol=1e-5)
-    # Any object with the weight names works (the trainer's LossConfig), offsets None is fine.
+    # Offsets None (no rectifier) is fine.
     g.offsets = None
-
-    class Cfg:
-        rgb, ssim, lpips, pos, scaling, offset = 1.0, 0.0, 0.0, 0.0, 2.0, 5.0
-
-    loss, terms = total_loss(render, target, g, Cfg(), never, never)
+    cfg = LossConfig(rgb=1.0, ssim=0.0, lpips=0.0, pos=0.0, scaling=2.0, offset=5.0)
+    loss, terms = total_loss(render, target, g, cfg, never, never)
     assert set(terms) == {"l1", "scaling"}
     assert math.isclose(float(loss.detach()), 0.5 + 2 * scal, rel_tol=1e-5)
     with pytest.raises(ValueError):
-        total_loss(render[:8], target, g, Cfg())
+        total_loss(render[:8], target, g, cfg)
 
 
 def test_total_loss_default_ssim_matches_metric():
@@ -87,7 +85,7 @@ def test_total_loss_default_ssim_matches_metric():
     render = torch.rand(24, 24, 3, generator=gen)
     target = torch.rand(24, 24, 3, generator=gen)
     g = _fake_set()
-    w = LossWeights(rgb=0, lpips=0, pos=0, scaling=0, offset=0, ssim=1.0)
+    w = LossConfig(rgb=0, lpips=0, pos=0, scaling=0, offset=0, ssim=1.0)
     loss, terms = total_loss(render, target, g, w)
     assert math.isclose(float(loss.detach()), 1 - float(ssim(render, target)), rel_tol=1e-6)
 
@@ -104,7 +102,7 @@ def test_loss_gradients_reach_every_avatar_parameter():
     g = av(v, torch.randn(69))
     # A stand-in "render" that depends on every attribute, as the rasterizer does.
     render = (g.means.mean() + g.quats.mean() + g.scales.mean() + g.opacities.mean() + g.sh.mean()).expand(16, 16, 3)
-    loss, _ = total_loss(render, torch.zeros(16, 16, 3), g, LossWeights(ssim=0, lpips=0))
+    loss, _ = total_loss(render, torch.zeros(16, 16, 3), g, LossConfig(ssim=0, lpips=0))
     loss.backward()
     for name, p in av.named_parameters():
         assert p.grad is not None and p.grad.abs().max() > 0, name

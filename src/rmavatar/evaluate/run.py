@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from rmavatar import __version__
-from rmavatar.utils import UserError, atomic_dir
+from rmavatar.utils import UserError, atomic_dir, resolve_device
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 # The error heat map spans mean absolute error 0 .. HEAT_MAX (per pixel, averaged over RGB).
@@ -46,18 +46,6 @@ def side_by_side(render: np.ndarray, target: np.ndarray) -> np.ndarray:
     """render | ground truth | error heat map, as uint8 [H, 3W, 3]."""
     row = np.concatenate([render, target, heat_map(render, target)], axis=1)
     return (np.clip(row, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError:
-        raise UserError(f"device {name!r} is not a torch device (use auto, cpu, cuda or cuda:N)") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
-    return dev
 
 
 def _finite_or_none(value: float) -> float | None:
@@ -117,7 +105,7 @@ def evaluate_run(
         out_dir = Path(out_dir)
         check_images_dir(out_dir)
 
-    dev = _device(device)
+    dev = resolve_device(device)
     run = load_run(run_dir, device=dev)
     spec = data if data is not None else run.data_spec
     if size is None:

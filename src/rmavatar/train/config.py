@@ -54,6 +54,8 @@ class LossConfig:
     pos: float = 0.01
     scaling: float = 1.0
     offset: float = 1.0
+    eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
+    eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
 
 
 @dataclass

@@ -11,29 +11,13 @@ the public release computes it (one mean per offset kind, summed).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Callable
 
 import torch
 
+from rmavatar.train.config import LossConfig
+
 ImageFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-@dataclass
-class LossWeights:
-    """The paper's weights; set a weight to 0 to switch its term off (``no_offset`` / ``no_scaling``
-    do that for the two ablations)."""
-
-    rgb: float = 1.5
-    ssim: float = 0.2
-    lpips: float = 0.05
-    pos: float = 0.01
-    scaling: float = 1.0
-    offset: float = 1.0
-    eps_pos: float = 1.0
-    eps_scaling: float = 0.6
-    no_offset: bool = False
-    no_scaling: bool = False
 
 
 def position_loss(local_means: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
@@ -68,28 +52,22 @@ def total_loss(
     render: torch.Tensor,
     target: torch.Tensor,
     gaussians: Any,
-    weights: Any = None,
+    weights: LossConfig | None = None,
     lpips_fn: ImageFn | None = None,
     ssim_fn: ImageFn | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of all terms, and each unweighted term (detached) by name.
 
     render, target [H,W,3]; gaussians: a ``GaussianSet`` (its local_means, local_log_scales and
-    offsets feed the regularisers); weights: LossWeights or any object with the same attribute names
-    (e.g. the trainer's LossConfig; missing eps/no_* attributes take LossWeights' defaults).
+    offsets feed the regularisers); weights: a ``LossConfig`` (None = the paper's weights; the
+    ablations set ``offset`` or ``scaling`` to 0).
     ssim_fn / lpips_fn (a, b) -> scalar similarity / distance; None = ``rmavatar.evaluate``'s.
     Terms with weight 0 are not computed.
     """
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
-    defaults = LossWeights()
-    w = {f: float(getattr(weights, f, getattr(defaults, f))) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset")}
-    eps_pos = float(getattr(weights, "eps_pos", defaults.eps_pos))
-    eps_scaling = float(getattr(weights, "eps_scaling", defaults.eps_scaling))
-    if getattr(weights, "no_offset", False):
-        w["offset"] = 0.0
-    if getattr(weights, "no_scaling", False):
-        w["scaling"] = 0.0
+    weights = weights or LossConfig()
+    w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset")}
 
     terms: dict[str, torch.Tensor] = {}
     if w["rgb"]:
@@ -99,9 +77,9 @@ def total_loss(
     if w["lpips"]:
         terms["lpips"] = (lpips_fn or _default_lpips)(render, target)
     if w["pos"] and getattr(gaussians, "local_means", None) is not None:
-        terms["pos"] = position_loss(gaussians.local_means, eps_pos)
+        terms["pos"] = position_loss(gaussians.local_means, weights.eps_pos)
     if w["scaling"] and getattr(gaussians, "local_log_scales", None) is not None:
-        terms["scaling"] = scaling_loss(gaussians.local_log_scales, eps_scaling)
+        terms["scaling"] = scaling_loss(gaussians.local_log_scales, weights.eps_scaling)
     if w["offset"] and getattr(gaussians, "offsets", None) is not None:
         terms["offset"] = offset_loss(*gaussians.offsets)
     key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}

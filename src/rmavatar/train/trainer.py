@@ -23,7 +23,7 @@ from rmavatar.train.checkpoint import (
     restore_rng, save_checkpoint,
 )
 from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
-from rmavatar.utils import UserError, atomic_path
+from rmavatar.utils import UserError, atomic_path, resolve_device
 
 
 # ----------------------------------------------------------------------------------------------- small parts
@@ -204,18 +204,6 @@ def keep_freed_memory() -> None:
     mallopt(M_MMAP_THRESHOLD, 32 * 2**20)  # glibc's largest allowed value on 64-bit
     mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
     mallopt(M_TOP_PAD, 256 * 2**20)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError:
-        raise UserError(f"device {name!r} is not a torch device (use auto, cpu, cuda or cuda:N)") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
-    return dev
 
 
 # ----------------------------------------------------------------------------------------------- training
