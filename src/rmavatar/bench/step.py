@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from rmavatar.bench.timing import Clock, median_time
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
@@ -37,37 +39,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU path)")
     parser.add_argument("--no-rectifier", action="store_true", help="time the 'w/o GauRec' model")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
-
-
-class _Clock:
-    """Wall and process-CPU seconds of a block (CPU time sums all threads: less sensitive to other load)."""
-
-    def __init__(self, sync):
-        self.sync = sync
-        self.wall: list[float] = []
-        self.cpu: list[float] = []
-
-    def __enter__(self):
-        self.sync()
-        self._t, self._c = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc):
-        self.sync()
-        self.wall.append(time.perf_counter() - self._t)
-        self.cpu.append(time.process_time() - self._c)
-        return False
-
-    def result(self) -> dict:
-        return {"wall_s": statistics.median(self.wall), "cpu_s": statistics.median(self.cpu)}
-
-
-def _median_time(fn, repeats: int, sync) -> dict:
-    clock = _Clock(sync)
-    for _ in range(repeats):
-        with clock:
-            fn()
-    return clock.result()
 
 
 def _stages(trainer, repeats: int, sync) -> dict:
@@ -88,13 +59,13 @@ def _stages(trainer, repeats: int, sync) -> dict:
     out = {}
 
     with torch.no_grad():
-        out["body_forward"] = _median_time(lambda: trainer.body(**one), repeats, sync)
+        out["body_forward"] = median_time(lambda: trainer.body(**one), repeats, sync)
 
     def embed():
         mu, r, s = av.posed(verts)
         (mu.sum() + r.sum() + s.sum()).backward()
 
-    out["mesh_embedding"] = _median_time(embed, repeats, sync)
+    out["mesh_embedding"] = median_time(embed, repeats, sync)
     if av.rectifier is not None:
         with torch.no_grad():
             mu0 = av.posed(verts)[0]
@@ -103,7 +74,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
             d_mu, d_s, d_r = av.rectifier(mu0, pose)
             (d_mu.sum() + d_s.sum() + d_r.sum()).backward()
 
-        out["rectifier"] = _median_time(rect, repeats, sync)
+        out["rectifier"] = median_time(rect, repeats, sync)
     with torch.no_grad():
         gs = av(verts, pose)
     leaves = [t.detach().clone().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
@@ -113,9 +84,9 @@ def _stages(trainer, repeats: int, sync) -> dict:
             rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
                       background=bg, sh_degree=gs.sh_degree)
 
-    out["rasterizer_forward"] = _median_time(raster_fwd, repeats, sync)
+    out["rasterizer_forward"] = median_time(raster_fwd, repeats, sync)
     grad_img = torch.rand(trainer.height, trainer.width, 3, generator=torch.Generator().manual_seed(0)).to(dev)
-    clock = _Clock(sync)
+    clock = Clock(sync)
     for _ in range(repeats):
         image, alpha, _ = rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
                                     background=bg, sh_degree=gs.sh_degree)
@@ -133,7 +104,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
         loss, _ = total_loss(img_leaf, target, gs_leaf, cfg.loss)
         loss.backward()
 
-    out["losses"] = _median_time(losses, repeats, sync)
+    out["losses"] = median_time(losses, repeats, sync)
 
     def optim():
         for p in (q for g in trainer.optimizer.param_groups for q in g["params"]):
@@ -142,13 +113,18 @@ def _stages(trainer, repeats: int, sync) -> dict:
         trainer.optimizer.step()
         trainer.optimizer.zero_grad(set_to_none=True)
 
-    out["optimizer"] = _median_time(optim, repeats, sync)
+    out["optimizer"] = median_time(optim, repeats, sync)
     av.zero_grad(set_to_none=True)
     return out
 
 
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
-            gaussians: int | None, rectifier: bool) -> dict:
+            gaussians: int | None, rectifier: bool, prepare=None) -> dict:
+    """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
+
+    ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
+    uses it to swap in a reference implementation).
+    """
     import torch
 
     from rmavatar.train.config import TrainConfig
@@ -168,6 +144,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         t0 = time.perf_counter()
         trainer._setup()
         setup_s = time.perf_counter() - t0
+        if prepare is not None:
+            prepare(trainer)
         sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
         trainer.avatar.set_progress(cfg.optim.iters, cfg.optim.iters)  # all SH bands on: the costliest step
 
@@ -179,7 +157,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
 
         for _ in range(warmup):
             one_step()
-        clock = _Clock(sync)
+        clock = Clock(sync)
         for _ in range(steps):
             with clock:
                 one_step()
@@ -216,6 +194,15 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     }
 
 
+def synthetic_subject(folder: Path, size: int) -> str:
+    """Make the small synthetic subject the speed benchmarks train on (8 training frames); its path."""
+    from rmavatar.data.synth import SynthConfig, synthesize
+
+    print(f"making a synthetic subject at {size}x{size} ...", flush=True)
+    synthesize(str(folder), SynthConfig(size=size, seed=0, train=8, test=1, novel_pose=1, ss=1), progress=False)
+    return str(folder)
+
+
 def run(args: argparse.Namespace) -> int:
     # Idle OpenMP threads sleep instead of spinning (must be set before torch loads; the environment
     # wins). On a busy machine spinning 2-thread steps wait on descheduled partners: measured 1.9 s vs
@@ -229,12 +216,7 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data
         if data is None:
-            from rmavatar.data.synth import SynthConfig, synthesize
-
-            data = str(Path(tmp) / "synth")
-            print(f"making a synthetic subject at {args.size}x{args.size} ...", flush=True)
-            synthesize(data, SynthConfig(size=args.size, seed=0, train=8, test=1, novel_pose=1, ss=1),
-                       progress=False)
+            data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
                       not args.no_rectifier)
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),

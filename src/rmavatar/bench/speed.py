@@ -1,0 +1,330 @@
+"""``rmavatar bench speed``: how fast rmavatar is on this machine, as times and as ratios to reference paths.
+
+Three measurements, each timed (median of repeats after warm-up) next to a reference path timed in the
+same run, so that the ratio stays comparable on a busy or different machine:
+
+1. rasterizer: forward+backward of the CPU kernels on an avatar-like scene (``bench raster``'s scene)
+   vs the dense pure-PyTorch float64 reference (``render/reference.py``). The reference is O(N H W) in
+   memory, so it runs on a small configuration; the fast kernels are timed on that same configuration
+   in float64 too (the like-for-like ratio), and the per Gaussian-pixel ratio to the large
+   configuration is reported as well.
+2. training step: the trainer's full step (``bench step``'s machinery: all losses, rectifier, Adam) vs
+   the same step with the rectifier run as a plain autograd MLP that concatenates its inputs
+   (``Rectifier.reference_forward``: same layers, same weights), each with its per-stage breakdown.
+3. rendering: frames per second of a posed avatar (body forward, mesh-embedded Gaussians, rectifier,
+   rasterizer; no autograd) at each render size, vs the same pipeline with the dense reference
+   rasterizer at a size where it fits (the fast pipeline is timed there too: that ratio).
+
+Every ratio is ``reference time / rmavatar time``: above 1 means rmavatar is faster.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    parser.add_argument("--size", type=int, default=256,
+                        help="image size of the rasterizer and training-step measurements (default 256)")
+    parser.add_argument("--gaussians", type=int, default=25_000,
+                        help="Gaussian count of the rasterizer scene (default 25000)")
+    parser.add_argument("--avatar-gaussians", type=int, default=None,
+                        help="Gaussian count of the avatar in the training step and rendering, placed by area "
+                             "(at least one per binding face; default: one per binding face, 24864 for Anny)")
+    parser.add_argument("--render-sizes", type=int, nargs="+", default=[256, 512], metavar="SIZE",
+                        help="image sizes of the rendering throughput (default: 256 512)")
+    parser.add_argument("--raster-reference", default="1000x64", metavar="NxSIZE",
+                        help="configuration of the dense reference rasterizer (default 1000x64)")
+    parser.add_argument("--render-reference-size", type=int, default=32,
+                        help="image size of the dense-reference rendering pipeline, with all Gaussians "
+                             "(default 32)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (default 7)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed runs first (default 2)")
+    parser.add_argument("--steps", type=int, default=8, help="timed training steps per variant (default 8)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and Numba threads (default 2)")
+    parser.add_argument("--data", metavar="DATA",
+                        help="dataset for the training step and the avatar's poses (default: a small "
+                             "synthetic subject made in a temporary folder)")
+    parser.add_argument("--run", metavar="RUN",
+                        help="render this trained run's avatar (default: a freshly initialised avatar)")
+    parser.epilog = "Example: rmavatar bench speed --json bench_speed.json"
+
+
+def _ratio(reference_s: float, ours_s: float) -> float:
+    return reference_s / ours_s
+
+
+# ---------------------------------------------------------------------------------------------- rasterizer
+def bench_rasterizer(n: int, size: int, ref_n: int, ref_size: int, repeats: int, warmup: int) -> dict:
+    """Forward+backward seconds of the CPU kernels at (n, size) in float32, and of the dense reference vs
+    the kernels at (ref_n, ref_size), both in float64 (see ``bench raster`` for the scene)."""
+    import torch
+
+    from rmavatar.bench.raster import _bench_one
+    from rmavatar.render import rasterize
+    from rmavatar.render.reference import reference_rasterize
+
+    opts = argparse.Namespace(sh_degree=3, device="cpu", disc_scale=1.5, repeats=repeats, warmup=warmup)
+    ref_opts = argparse.Namespace(**{**vars(opts), "repeats": min(repeats, 3), "warmup": min(warmup, 1)})
+    no_sync = lambda: None  # noqa: E731
+
+    def fast(*a, **kw):
+        return rasterize(*a, backend="cpu", **kw)
+
+    def keep(m: dict) -> dict:
+        return {k: m[k] for k in ("forward_s", "forward_backward_s", "forward_backward_cpu_s")}
+
+    ours = keep(_bench_one(n, size, opts, no_sync, fast, memory=False))
+    ref = keep(_bench_one(ref_n, ref_size, ref_opts, no_sync, reference_rasterize, dtype=torch.float64,
+                          memory=False))
+    ours_small = keep(_bench_one(ref_n, ref_size, ref_opts, no_sync, fast, dtype=torch.float64, memory=False))
+    per_gp_ref = ref["forward_backward_s"] / (ref_n * ref_size**2)
+    per_gp_ours = ours["forward_backward_s"] / (n * size**2)
+    return {
+        "scene": "bench raster's figure_scene: surface discs on a 1.8 m figure, SH degree 3, white background",
+        "rmavatar": {"n": n, "size": size, "dtype": "float32", "backend": "cpu", **ours},
+        "reference": {"n": ref_n, "size": ref_size, "dtype": "float64", "path": "render.reference "
+                      "(dense: every pixel x every Gaussian, autograd)", **ref},
+        "rmavatar_at_reference_config": {"n": ref_n, "size": ref_size, "dtype": "float64", **ours_small},
+        "time_s": ours["forward_backward_s"],
+        "ratio": _ratio(ref["forward_backward_s"], ours_small["forward_backward_s"]),
+        "ratio_note": "dense reference / CPU kernels, forward+backward, same scene, same config, both float64",
+        "ratio_per_gaussian_pixel": per_gp_ref / per_gp_ours,
+        "ratio_per_gaussian_pixel_note": "reference seconds per Gaussian-pixel at its config / kernels' at "
+                                         f"{n}x{size} float32 (tiling makes the kernels' cost grow far slower "
+                                         "than N*H*W, so this grows with the size)",
+    }
+
+
+# ------------------------------------------------------------------------------------------- training step
+def _naive_rectifier(trainer) -> None:
+    """Run the trainer's rectifier as a plain autograd MLP on concatenated inputs (same weights)."""
+    rect = trainer.avatar.rectifier
+    if rect is not None:
+        rect.forward = rect.reference_forward
+
+
+def bench_training_step(data: str, size: int, steps: int, warmup: int, threads: int,
+                        gaussians: int | None) -> dict:
+    """``bench step``'s measurement for the fused rectifier and for the plain autograd one."""
+    from rmavatar.bench.step import measure
+
+    ours = measure(data, size, steps, warmup, threads, "cpu", gaussians, rectifier=True)
+    ref = measure(data, size, steps, warmup, threads, "cpu", gaussians, rectifier=True, prepare=_naive_rectifier)
+    return {
+        "rmavatar": ours,
+        "reference": {"path": "the same step with Rectifier.reference_forward: nn.Linear + ReLU under "
+                              "autograd on the concatenated [N,105] and [N,164] inputs", **ref},
+        "time_s": ours["step_median_s"],
+        "ratio": _ratio(ref["step_median_s"], ours["step_median_s"]),
+        "ratio_note": "reference step / rmavatar step (median wall seconds)",
+        "rectifier_stage_ratio": _ratio(ref["stages"]["rectifier"]["wall_s"], ours["stages"]["rectifier"]["wall_s"]),
+    }
+
+
+# ----------------------------------------------------------------------------------------------- rendering
+def _poser(data: str, run: str | None, gaussians: int | None):
+    from types import SimpleNamespace
+
+    from rmavatar.animate.drive import Poser
+
+    if run is not None:
+        from rmavatar.train import load_run
+
+        return Poser.from_run(load_run(run)), "trained run " + str(run)
+    from rmavatar.body import load_body_model
+    from rmavatar.data import load_dataset
+    from rmavatar.train.config import TrainConfig
+    from rmavatar.train.trainer import build_avatar, resolve_body
+
+    cfg = TrainConfig()
+    if gaussians:
+        cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
+    spec, gender = resolve_body(cfg, load_dataset(data))
+    body = load_body_model(spec, gender=gender)
+    avatar = build_avatar(body, cfg).eval()
+    desc = f"freshly initialised (untrained) avatar on {spec}, {avatar.num_gaussians} Gaussians"
+    return Poser.from_run(SimpleNamespace(avatar=avatar, body=body, data_spec=data)), desc
+
+
+def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: int, warmup: int) -> dict:
+    """Frames per second of pose -> image for the training poses of ``data``, each frame in front of a
+    camera framing the body (as ``rmavatar animate`` shoots it)."""
+    import numpy as np
+    import torch
+
+    from rmavatar.animate.camera import intrinsics, preset_viewmat
+    from rmavatar.animate.jobs import VideoOptions, frame_the_body
+    from rmavatar.animate.motion import PoseSequence, recenter_motion
+    from rmavatar.bench.timing import median_time
+    from rmavatar.data import load_dataset
+    from rmavatar.render import rasterize
+    from rmavatar.render.reference import reference_rasterize
+
+    params = load_dataset(data).params("train")
+    seq = PoseSequence(*(torch.as_tensor(np.asarray(params[k]), dtype=torch.float32)
+                         for k in ("global_orient", "body_pose", "transl")))
+    seq = recenter_motion(seq, poser.root_rest())
+    center, distance = frame_the_body(poser.vertices(seq), VideoOptions())
+    view = preset_viewmat("front", center, distance)
+
+    def pipeline(raster, size):
+        K = intrinsics(size, size, VideoOptions().fov_deg)
+        bg = torch.ones(3)
+        state = {"i": 0}
+
+        @torch.no_grad()
+        def frame():
+            i = state["i"] % len(seq)
+            state["i"] += 1
+            one = seq.select(slice(i, i + 1))
+            gs = poser.gaussians(poser.vertices(one)[0], one.body_pose[0])
+            out = raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, view, K, size, size,
+                         background=bg, sh_degree=gs.sh_degree)
+            return out[0]
+
+        return frame
+
+    def fast(*a, **kw):
+        return rasterize(*a, backend="cpu", **kw)
+
+    def fps(raster, size, reps, warm):
+        t = median_time(pipeline(raster, size), reps, warmup=warm)
+        return {"size": size, "frame_s": t["wall_s"], "frame_cpu_s": t["cpu_s"], "fps": 1.0 / t["wall_s"]}
+
+    rows = [fps(fast, s, repeats, warmup) for s in sizes]
+    ref_reps, ref_warm = min(repeats, 3), min(warmup, 1)
+    ref = fps(reference_rasterize, ref_size, ref_reps, ref_warm)
+    ours_small = fps(fast, ref_size, repeats, warmup)
+    return {
+        "pipeline": "body forward (1 frame) + mesh-embedded Gaussians + rectifier + rasterize, no autograd, "
+                    "front camera framing the body, cycling through the training poses",
+        "rmavatar": rows,
+        "reference": {"path": "the same pipeline with render.reference (dense, float64)", **ref},
+        "rmavatar_at_reference_size": ours_small,
+        "time_s": rows[0]["frame_s"],
+        "ratio": _ratio(ref["frame_s"], ours_small["frame_s"]),
+        "ratio_note": f"frame time with the dense reference rasterizer / with the CPU kernels, both at "
+                      f"{ref_size}x{ref_size} with all Gaussians",
+    }
+
+
+# ---------------------------------------------------------------------------------------------------- run
+def _check(args) -> tuple[int, int]:
+    from rmavatar.bench.raster import _parse_config
+    from rmavatar.utils import UserError
+
+    for name in ("size", "gaussians", "repeats", "steps", "threads", "render_reference_size"):
+        if getattr(args, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.avatar_gaussians is not None and args.avatar_gaussians < 1:
+        raise UserError(f"--avatar-gaussians must be >= 1, got {args.avatar_gaussians}")
+    if args.warmup < 0:
+        raise UserError(f"--warmup must be >= 0, got {args.warmup}")
+    if any(s < 1 for s in args.render_sizes):
+        raise UserError(f"--render-sizes must all be >= 1, got {args.render_sizes}")
+    if args.run is not None and not Path(args.run).is_dir():
+        raise UserError(f"--run {args.run}: no such run folder")
+    if args.json:  # fail now, not after minutes of measuring, if the result cannot be written
+        parent = Path(args.json).resolve().parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise UserError(f"cannot write --json {args.json}: folder {parent} is missing or not writable")
+    ref_n, ref_size = _parse_config(args.raster_reference)
+    if ref_n < 1:
+        raise UserError(f"--raster-reference needs at least one Gaussian, got {args.raster_reference!r}")
+    return ref_n, ref_size
+
+
+def _print(report: dict) -> None:
+    r, s, v = report["rasterizer"], report["training_step"], report["rendering"]
+    rr, ref = r["rmavatar"], r["reference"]
+    print()
+    print(f"{'measurement':<44} {'rmavatar':>12} {'reference':>12} {'ratio':>8}")
+    print(f"{'rasterizer fwd+bwd ' + str(rr['n']) + ' @' + str(rr['size']) + ' (f32)':<44} "
+          f"{rr['forward_backward_s'] * 1e3:>9.1f} ms {'':>12} {'':>8}")
+    print(f"{'  same config as reference ' + str(ref['n']) + ' @' + str(ref['size']) + ' (f64)':<44} "
+          f"{r['rmavatar_at_reference_config']['forward_backward_s'] * 1e3:>9.1f} ms "
+          f"{ref['forward_backward_s'] * 1e3:>9.1f} ms {r['ratio']:>7.1f}x")
+    print(f"{'  per Gaussian-pixel':<44} {'':>12} {'':>12} {r['ratio_per_gaussian_pixel']:>7.0f}x")
+    so, sr = s["rmavatar"], s["reference"]
+    print(f"{'training step ' + str(so['gaussians']) + ' @' + str(so['size']):<44} "
+          f"{so['step_median_s'] * 1e3:>9.1f} ms {sr['step_median_s'] * 1e3:>9.1f} ms {s['ratio']:>7.2f}x")
+    for k in so["stages"]:
+        a, b = so["stages"][k]["wall_s"], sr["stages"][k]["wall_s"]
+        print(f"{'  ' + k:<44} {a * 1e3:>9.1f} ms {b * 1e3:>9.1f} ms {b / a:>7.2f}x")
+    print(f"{'  other (data, guards, statistics)':<44} {so['other']['wall_s'] * 1e3:>9.1f} ms "
+          f"{sr['other']['wall_s'] * 1e3:>9.1f} ms")
+    for row in v["rmavatar"]:
+        print(f"{'render ' + str(row['size']) + 'x' + str(row['size']) + ' (no grad)':<44} "
+              f"{row['fps']:>8.1f} fps {'':>12} {'':>8}")
+    vr, vs = v["reference"], v["rmavatar_at_reference_size"]
+    print(f"{'  same size as reference ' + str(vr['size']) + 'x' + str(vr['size']):<44} "
+          f"{vs['fps']:>8.1f} fps {vr['fps']:>8.2f} fps {v['ratio']:>7.1f}x")
+    m = report["machine"]
+    print(f"\nratio = reference time / rmavatar time.  {m['cpu_count']} CPUs, torch {m['torch']} "
+          f"({m['torch_threads']} threads), numba {m['numba']}; load average "
+          f"{m['load_average_start'][0]:.2f} at start, {m['load_average_end'][0]:.2f} at end "
+          f"(1 min); {report['total_s']:.0f} s in all")
+
+
+def run(args: argparse.Namespace) -> int:
+    # Idle OpenMP threads sleep instead of spinning (before torch loads; see bench step).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    ref_n, ref_size = _check(args)
+
+    from rmavatar.bench.step import synthetic_subject
+    from rmavatar.bench.timing import machine_info
+    from rmavatar.train.trainer import set_threads
+    from rmavatar.utils import atomic_path
+
+    t_start = time.perf_counter()
+    load_start = list(os.getloadavg())
+    set_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data or synthetic_subject(Path(tmp) / "synth", args.size)
+        print(f"rasterizer: {args.gaussians} Gaussians at {args.size}x{args.size} vs dense reference "
+              f"{args.raster_reference} ...", flush=True)
+        raster = bench_rasterizer(args.gaussians, args.size, ref_n, ref_size, args.repeats, args.warmup)
+        print(f"training step at {args.size}x{args.size}: fused vs plain autograd rectifier ...", flush=True)
+        step = bench_training_step(data, args.size, args.steps, min(args.warmup, args.steps), args.threads,
+                                   args.avatar_gaussians)
+        set_threads(args.threads)
+        print(f"rendering at {', '.join(map(str, args.render_sizes))} vs dense reference at "
+              f"{args.render_reference_size} ...", flush=True)
+        poser, avatar_desc = _poser(data, args.run, args.avatar_gaussians)
+        render = bench_rendering(poser, data, args.render_sizes, args.render_reference_size, args.repeats,
+                                 args.warmup)
+        render["avatar"] = avatar_desc
+        render["gaussians"] = int(poser.avatar.num_gaussians)
+    machine = machine_info()
+    machine["load_average_start"] = load_start
+    machine["load_average_end"] = machine.pop("load_average")
+    report = {
+        "benchmark": "speed",
+        "ratio_definition": "reference time / rmavatar time, measured in the same run (> 1: rmavatar faster)",
+        "timing": f"median wall seconds of {args.repeats} runs after {args.warmup} warm-up runs "
+                  f"(training steps: {args.steps}); dense references: at most 3 runs after 1 warm-up",
+        "data": args.data or "synthetic subject (rmavatar synth, seed 0, 8 training frames)",
+        "rasterizer": raster,
+        "training_step": step,
+        "rendering": render,
+        "machine": machine,
+        "total_s": time.perf_counter() - t_start,
+    }
+    ratios = [raster["ratio"], raster["ratio_per_gaussian_pixel"], step["ratio"], step["rectifier_stage_ratio"],
+              render["ratio"]]
+    if not all(math.isfinite(x) and x > 0 for x in ratios):
+        raise RuntimeError(f"a speed ratio is not a positive finite number: {ratios}")
+    _print(report)
+    if args.json:
+        with atomic_path(args.json) as tmp_path:
+            Path(tmp_path).write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
