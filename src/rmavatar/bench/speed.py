@@ -26,6 +26,7 @@ import math
 import os
 import tempfile
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 
@@ -45,9 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--render-reference-size", type=int, default=32,
                         help="image size of the dense-reference rendering pipeline, with all Gaussians "
                              "(default 32)")
-    parser.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (default 7)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed runs first (default 2)")
-    parser.add_argument("--steps", type=int, default=8, help="timed training steps per variant (default 8)")
+    parser.add_argument("--repeats", type=int, default=9, help="timed repeats per measurement (default 9)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed runs first (default 3)")
+    parser.add_argument("--steps", type=int, default=15, help="timed training steps per variant (default 15)")
     parser.add_argument("--threads", type=int, default=2, help="torch and Numba threads (default 2)")
     parser.add_argument("--data", metavar="DATA",
                         help="dataset for the training step and the avatar's poses (default: a small "
@@ -163,7 +164,7 @@ def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: 
     from rmavatar.animate.camera import intrinsics, preset_viewmat
     from rmavatar.animate.jobs import VideoOptions, frame_the_body
     from rmavatar.animate.motion import PoseSequence, recenter_motion
-    from rmavatar.bench.timing import median_time
+    from rmavatar.bench.timing import Clock
     from rmavatar.data import load_dataset
     from rmavatar.render import rasterize
     from rmavatar.render.reference import reference_rasterize
@@ -175,29 +176,29 @@ def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: 
     center, distance = frame_the_body(poser.vertices(seq), VideoOptions())
     view = preset_viewmat("front", center, distance)
 
-    def pipeline(raster, size):
+    def fps(raster, size, reps, warm):
+        """Median frame time at ``size`` and the medians of its three stages."""
         K = intrinsics(size, size, VideoOptions().fov_deg)
         bg = torch.ones(3)
-        state = {"i": 0}
-
-        @torch.no_grad()
-        def frame():
-            i = state["i"] % len(seq)
-            state["i"] += 1
-            one = seq.select(slice(i, i + 1))
-            gs = poser.gaussians(poser.vertices(one)[0], one.body_pose[0])
-            out = raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, view, K, size, size,
-                         background=bg, sh_degree=gs.sh_degree)
-            return out[0]
-
-        return frame
+        stages = {name: Clock() for name in ("body_forward", "gaussians", "rasterize")}
+        frame_clock = Clock()
+        for k in range(warm + reps):
+            one = seq.select(slice(k % len(seq), k % len(seq) + 1))
+            timed = k >= warm
+            with torch.no_grad(), (frame_clock if timed else nullcontext()):
+                with stages["body_forward"] if timed else nullcontext():
+                    vertices = poser.vertices(one)[0]
+                with stages["gaussians"] if timed else nullcontext():  # mesh embedding + rectifier
+                    gs = poser.gaussians(vertices, one.body_pose[0])
+                with stages["rasterize"] if timed else nullcontext():
+                    raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, view, K, size, size,
+                           background=bg, sh_degree=gs.sh_degree)
+        t = frame_clock.result()
+        return {"size": size, "frame_s": t["wall_s"], "frame_cpu_s": t["cpu_s"], "fps": 1.0 / t["wall_s"],
+                "stages_s": {name: c.result()["wall_s"] for name, c in stages.items()}}
 
     def fast(*a, **kw):
         return rasterize(*a, backend="cpu", **kw)
-
-    def fps(raster, size, reps, warm):
-        t = median_time(pipeline(raster, size), reps, warmup=warm)
-        return {"size": size, "frame_s": t["wall_s"], "frame_cpu_s": t["cpu_s"], "fps": 1.0 / t["wall_s"]}
 
     rows = [fps(fast, s, repeats, warmup) for s in sizes]
     ref_reps, ref_warm = min(repeats, 3), min(warmup, 1)
@@ -262,8 +263,10 @@ def _print(report: dict) -> None:
     print(f"{'  other (data, guards, statistics)':<44} {so['other']['wall_s'] * 1e3:>9.1f} ms "
           f"{sr['other']['wall_s'] * 1e3:>9.1f} ms")
     for row in v["rmavatar"]:
+        st = row["stages_s"]
         print(f"{'render ' + str(row['size']) + 'x' + str(row['size']) + ' (no grad)':<44} "
-              f"{row['fps']:>8.1f} fps {'':>12} {'':>8}")
+              f"{row['fps']:>8.1f} fps {'':>12} {'':>8}   body {st['body_forward'] * 1e3:.0f} ms, "
+              f"Gaussians+rectifier {st['gaussians'] * 1e3:.0f} ms, rasterize {st['rasterize'] * 1e3:.0f} ms")
     vr, vs = v["reference"], v["rmavatar_at_reference_size"]
     print(f"{'  same size as reference ' + str(vr['size']) + 'x' + str(vr['size']):<44} "
           f"{vs['fps']:>8.1f} fps {vr['fps']:>8.2f} fps {v['ratio']:>7.1f}x")
