@@ -10,7 +10,8 @@ same run, so that the ratio stays comparable on a busy or different machine:
    configuration is reported as well.
 2. training step: the trainer's full step (``bench step``'s machinery: all losses, rectifier, Adam) vs
    the same step with the rectifier run as a plain autograd MLP that concatenates its inputs
-   (``Rectifier.reference_forward``: same layers, same weights), each with its per-stage breakdown.
+   (``Rectifier.reference_forward``: same layers, same weights), each with its per-stage breakdown,
+   measured in the order ours, reference, reference, ours.
 3. rendering: frames per second of a posed avatar (body forward, mesh-embedded Gaussians, rectifier,
    rasterizer; no autograd) at each render size, vs the same pipeline with the dense reference
    rasterizer at a size where it fits (the fast pipeline is timed there too: that ratio).
@@ -24,6 +25,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import tempfile
 import time
 from contextlib import nullcontext
@@ -112,21 +114,45 @@ def _naive_rectifier(trainer) -> None:
         rect.forward = rect.reference_forward
 
 
+def _mean_rounds(rounds: list[dict]) -> dict:
+    """Step and per-stage wall seconds averaged over rounds of ``bench step``'s measurement."""
+    mean = statistics.fmean
+    return {
+        "step_s": mean(r["step_median_s"] for r in rounds),
+        "step_cpu_s": mean(r["step_median_cpu_s"] for r in rounds),
+        "stages_s": {k: mean(r["stages"][k]["wall_s"] for r in rounds) for k in rounds[0]["stages"]},
+        "other_s": mean(r["other"]["wall_s"] for r in rounds),
+        "gaussians": rounds[0]["gaussians"],
+        "size": rounds[0]["size"],
+        "rounds": rounds,
+    }
+
+
 def bench_training_step(data: str, size: int, steps: int, warmup: int, threads: int,
                         gaussians: int | None) -> dict:
-    """``bench step``'s measurement for the fused rectifier and for the plain autograd one."""
+    """``bench step``'s measurement for the fused rectifier and for the plain autograd one.
+
+    Measured in the order ours, reference, reference, ours and averaged per variant, so that load that
+    rises or falls during the run weighs on both alike (the two differ by ~10% of a step, less than
+    the load's effect on one median).
+    """
     from rmavatar.bench.step import measure
 
-    ours = measure(data, size, steps, warmup, threads, "cpu", gaussians, rectifier=True)
-    ref = measure(data, size, steps, warmup, threads, "cpu", gaussians, rectifier=True, prepare=_naive_rectifier)
+    rounds: dict[str, list[dict]] = {"rmavatar": [], "reference": []}
+    for name in ("rmavatar", "reference", "reference", "rmavatar"):
+        prepare = _naive_rectifier if name == "reference" else None
+        rounds[name].append(measure(data, size, steps, warmup, threads, "cpu", gaussians, rectifier=True,
+                                    prepare=prepare))
+    ours, ref = _mean_rounds(rounds["rmavatar"]), _mean_rounds(rounds["reference"])
     return {
         "rmavatar": ours,
         "reference": {"path": "the same step with Rectifier.reference_forward: nn.Linear + ReLU under "
                               "autograd on the concatenated [N,105] and [N,164] inputs", **ref},
-        "time_s": ours["step_median_s"],
-        "ratio": _ratio(ref["step_median_s"], ours["step_median_s"]),
-        "ratio_note": "reference step / rmavatar step (median wall seconds)",
-        "rectifier_stage_ratio": _ratio(ref["stages"]["rectifier"]["wall_s"], ours["stages"]["rectifier"]["wall_s"]),
+        "time_s": ours["step_s"],
+        "ratio": _ratio(ref["step_s"], ours["step_s"]),
+        "ratio_note": "reference step / rmavatar step (median wall seconds, mean of 2 rounds each, "
+                      "measured ours-reference-reference-ours)",
+        "rectifier_stage_ratio": _ratio(ref["stages_s"]["rectifier"], ours["stages_s"]["rectifier"]),
     }
 
 
@@ -256,12 +282,12 @@ def _print(report: dict) -> None:
     print(f"{'  per Gaussian-pixel':<44} {'':>12} {'':>12} {r['ratio_per_gaussian_pixel']:>7.0f}x")
     so, sr = s["rmavatar"], s["reference"]
     print(f"{'training step ' + str(so['gaussians']) + ' @' + str(so['size']):<44} "
-          f"{so['step_median_s'] * 1e3:>9.1f} ms {sr['step_median_s'] * 1e3:>9.1f} ms {s['ratio']:>7.2f}x")
-    for k in so["stages"]:
-        a, b = so["stages"][k]["wall_s"], sr["stages"][k]["wall_s"]
+          f"{so['step_s'] * 1e3:>9.1f} ms {sr['step_s'] * 1e3:>9.1f} ms {s['ratio']:>7.2f}x")
+    for k, a in so["stages_s"].items():
+        b = sr["stages_s"][k]
         print(f"{'  ' + k:<44} {a * 1e3:>9.1f} ms {b * 1e3:>9.1f} ms {b / a:>7.2f}x")
-    print(f"{'  other (data, guards, statistics)':<44} {so['other']['wall_s'] * 1e3:>9.1f} ms "
-          f"{sr['other']['wall_s'] * 1e3:>9.1f} ms")
+    print(f"{'  other (data, guards, statistics)':<44} {so['other_s'] * 1e3:>9.1f} ms "
+          f"{sr['other_s'] * 1e3:>9.1f} ms")
     for row in v["rmavatar"]:
         st = row["stages_s"]
         print(f"{'render ' + str(row['size']) + 'x' + str(row['size']) + ' (no grad)':<44} "
@@ -313,7 +339,7 @@ def run(args: argparse.Namespace) -> int:
         "benchmark": "speed",
         "ratio_definition": "reference time / rmavatar time, measured in the same run (> 1: rmavatar faster)",
         "timing": f"median wall seconds of {args.repeats} runs after {args.warmup} warm-up runs "
-                  f"(training steps: {args.steps}); dense references: at most 3 runs after 1 warm-up",
+                  f"(training steps: {args.steps} per round, 2 rounds per variant); dense references: at most 3 runs after 1 warm-up",
         "data": args.data or "synthetic subject (rmavatar synth, seed 0, 8 training frames)",
         "rasterizer": raster,
         "training_step": step,
