@@ -147,6 +147,51 @@ def test_gaussians_move_rigidly_with_a_rigid_mesh():
         assert torch.allclose(g1.scales / g0.scales, torch.full_like(g0.scales, c), rtol=1e-10)
 
 
+def test_rotated_sh_evaluates_like_local_sh_along_local_directions():
+    from rmavatar.avatar.geometry import rotate_sh, sh_rotation_matrices
+    from rmavatar.render.project import sh_to_rgb
+
+    gen = torch.Generator().manual_seed(5)
+    R = torch.stack([random_rotation(gen) for _ in range(6)])
+    sh = torch.randn(6, 16, 3, generator=gen, dtype=torch.float64) * 0.3
+    world = rotate_sh(sh, sh_rotation_matrices(R, 3))
+    assert torch.equal(world[:, 0], sh[:, 0])  # band 0 does not turn
+    for _ in range(5):
+        d = torch.randn(6, 3, generator=gen, dtype=torch.float64)  # camera -> Gaussian, world axes
+        local_d = torch.einsum("nji,nj->ni", R, d)  # R^T d
+        zero = torch.zeros(3, dtype=torch.float64)
+        expect = sh_to_rgb(sh, 3, local_d, zero)
+        assert torch.allclose(sh_to_rgb(world, 3, d, zero), expect, atol=1e-10)
+        # Without the rotation the colours differ: the test can fail.
+        assert not torch.allclose(sh_to_rgb(sh, 3, d, zero), expect, atol=1e-3)
+
+
+def test_view_dependent_colour_turns_with_the_body():
+    """Turning the posed body and the camera together leaves every Gaussian's colour unchanged, and the
+    export (world-axis SH for standard readers) gives the same colours."""
+    from rmavatar.render.project import sh_to_rgb
+
+    v, f = sphere()
+    gen = torch.Generator().manual_seed(6)
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False, sh_degree=3)).double()
+    randomise(av, gen)
+    av.active_sh_degree.fill_(3)
+    v = v.double()
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, 3] = torch.tensor([0.2, 0.1, 3.0])
+    g0 = av(v)
+    c0 = g0.colors(view)
+    Q = torch.eye(4, dtype=torch.float64)
+    Q[:3, :3] = random_rotation(gen)
+    g1 = av(v @ Q[:3, :3].T)
+    assert torch.allclose(g1.colors(view @ Q.T), c0, atol=1e-9)  # camera turned with the body
+    assert not torch.allclose(g1.colors(view), c0, atol=1e-3)  # a different view: other colours
+    ex = av.world_gaussians(v @ Q[:3, :3].T)
+    campos = -(view @ Q.T)[:3, :3].T @ (view @ Q.T)[:3, 3]
+    assert torch.allclose(ex.colors(view @ Q.T), c0, atol=1e-9)
+    assert torch.allclose(sh_to_rgb(ex.world_sh(), 3, ex.means, campos), c0, atol=1e-9)
+
+
 def test_each_gaussian_follows_its_own_triangle_under_any_deformation():
     # Disconnected triangles, each moved by its own random similarity transform (an arbitrary
     # "pose"): every Gaussian must move exactly like its parent triangle.

@@ -75,9 +75,9 @@ def tiny(tmp_path_factory):
             t = {k: torch.as_tensor(v[i : i + 1]) for k, v in p.items()}
             verts = run.body(t["betas"], t["global_orient"], t["body_pose"], t["transl"]).vertices[0]
             gs = run.avatar(verts, t["body_pose"][0])
-            img, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh,
-                                  torch.as_tensor(cam["viewmat"]), torch.as_tensor(cam["K"]), SIZE, SIZE,
-                                  background=torch.ones(3), sh_degree=gs.sh_degree)
+            view = torch.as_tensor(cam["viewmat"])
+            img, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view),
+                                  view, torch.as_tensor(cam["K"]), SIZE, SIZE, background=torch.ones(3))
             renders.append(img.clamp(0, 1).numpy())
     # Stored as 8-bit PNGs, as every dataset is.
     quantised = [np.round(r * 255).astype(np.uint8) for r in renders]

@@ -118,8 +118,9 @@ def render_image(gs, viewmat: torch.Tensor, K: torch.Tensor, width: int, height:
     with torch.no_grad():
         bg = None if background is None else torch.as_tensor(background, dtype=gs.means.dtype,
                                                              device=gs.means.device)
-        image, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, viewmat.to(gs.means),
-                                K.to(gs.means), width, height, background=bg, sh_degree=gs.sh_degree)
+        viewmat = viewmat.to(gs.means)
+        image, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(viewmat), viewmat,
+                                K.to(gs.means), width, height, background=bg)
     return image
 
 

@@ -15,7 +15,13 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_frames
+from rmavatar.avatar.geometry import (
+    quat_multiply,
+    rotate_sh,
+    rotmat_to_quat,
+    sh_rotation_matrices,
+    triangle_frames,
+)
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.utils import UserError
 
@@ -75,6 +81,9 @@ class GaussianSet:
 
     means [N,3], quats [N,4] (wxyz, unit), scales [N,3] (linear), opacities [N] in [0,1],
     sh [N,K,3] with K = (sh_degree+1)^2 (colour = 0.5 + SH evaluation, the gsplat convention),
+    expressed in the axes of ``frames`` [N,3,3] (each Gaussian's face frame, local -> world; None means
+    world axes): render with ``colors(viewmat)``, which evaluates them along each Gaussian's local
+    view direction; ``world_sh()`` gives them in world axes for standard 3DGS files.
     offsets = (d_mu [N,3], d_s [N,3], d_r [N,4]) of the rectifier, or None without one.
     local_means [N,3] / local_log_scales [N,3] are the avatar's face-local parameters (for the
     position and scaling regularisers); face_ids [N] the parent faces.
@@ -90,9 +99,26 @@ class GaussianSet:
     face_ids: torch.Tensor | None = field(default=None, repr=False)
     local_means: torch.Tensor | None = field(default=None, repr=False)
     local_log_scales: torch.Tensor | None = field(default=None, repr=False)
+    frames: torch.Tensor | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return self.means.shape[0]
+
+    def colors(self, viewmat: torch.Tensor) -> torch.Tensor:
+        """RGB [N,3] seen by the camera ``viewmat`` [4,4] (world -> camera), for ``rasterize``.
+
+        View dependence lives in the face frames, so it turns with the body: a fixed camera watching a
+        turning person shows each surface from many local directions (in world axes it would only ever
+        see one, and every other view would extrapolate)."""
+        from rmavatar.render.project import view_colors
+
+        return view_colors(self.sh, self.sh_degree, self.means, viewmat, self.frames)
+
+    def world_sh(self) -> torch.Tensor:
+        """``sh`` [N,K,3] turned into world axes, as standard 3DGS readers evaluate them (for export)."""
+        if self.frames is None or self.sh_degree == 0:
+            return self.sh
+        return rotate_sh(self.sh, sh_rotation_matrices(self.frames, self.sh_degree))
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -288,6 +314,11 @@ class Avatar(nn.Module):
 
     def posed(self, vertices: torch.Tensor):
         """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3]."""
+        return self._posed(vertices)[:3]
+
+    def _posed(self, vertices: torch.Tensor):
+        """mu*, r*, s* and the frames they came from: R [Fb,3,3] of the binding faces and every
+        Gaussian's index into them, slot [N]."""
         if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
             raise ValueError(
                 f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
@@ -297,12 +328,12 @@ class Avatar(nn.Module):
         R, w, M = triangle_frames(vertices, self.faces[self.binding_faces])
         q = rotmat_to_quat(R)
         slot = self._face_slot()
-        R, w, M, q = R[slot], w[slot], M[slot], q[slot]
-        mu_star = w.unsqueeze(-1) * (R @ self.means.unsqueeze(-1)).squeeze(-1) + M
+        Rg, w, M, q = R[slot], w[slot], M[slot], q[slot]
+        mu_star = w.unsqueeze(-1) * (Rg @ self.means.unsqueeze(-1)).squeeze(-1) + M
         r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
         r_star = quat_multiply(q, r)
         s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
-        return mu_star, r_star, s_star
+        return mu_star, r_star, s_star, R, slot
 
     def _face_slot(self) -> torch.Tensor:
         """Index of every Gaussian's face in ``binding_faces`` [N]."""
@@ -317,7 +348,8 @@ class Avatar(nn.Module):
     def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
         """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
         pose input; may be None only without a rectifier)."""
-        mu, r, s = self.posed(vertices)
+        mu, r, s, frames, slot = self._posed(vertices)
+        frames = frames[slot]
         offsets = None
         if self.rectifier is not None:
             if body_pose is None:
@@ -346,6 +378,7 @@ class Avatar(nn.Module):
             face_ids=self.face_ids,
             local_means=self.means,
             local_log_scales=self.log_scales,
+            frames=frames,
         )
 
     @torch.no_grad()

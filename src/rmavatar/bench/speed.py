@@ -217,8 +217,8 @@ def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: 
                 with stages["gaussians"] if timed else nullcontext():  # mesh embedding + rectifier
                     gs = poser.gaussians(vertices, one.body_pose[0])
                 with stages["rasterize"] if timed else nullcontext():
-                    raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, view, K, size, size,
-                           background=bg, sh_degree=gs.sh_degree)
+                    raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view, K, size, size,
+                           background=bg)
         t = frame_clock.result()
         return {"size": size, "frame_s": t["wall_s"], "frame_cpu_s": t["cpu_s"], "fps": 1.0 / t["wall_s"],
                 "stages_s": {name: c.result()["wall_s"] for name, c in stages.items()}}

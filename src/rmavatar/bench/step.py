@@ -77,19 +77,20 @@ def _stages(trainer, repeats: int, sync) -> dict:
         out["rectifier"] = median_time(rect, repeats, sync)
     with torch.no_grad():
         gs = av(verts, pose)
-    leaves = [t.detach().clone().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)]
+    colors = gs.colors(trainer.viewmats[i])
+    leaves = [t.detach().clone().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors)]
 
     def raster_fwd():
         with torch.no_grad():
             rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
-                      background=bg, sh_degree=gs.sh_degree)
+                      background=bg)
 
     out["rasterizer_forward"] = median_time(raster_fwd, repeats, sync)
     grad_img = torch.rand(trainer.height, trainer.width, 3, generator=torch.Generator().manual_seed(0)).to(dev)
     clock = Clock(sync)
     for _ in range(repeats):
         image, alpha, _ = rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
-                                    background=bg, sh_degree=gs.sh_degree)
+                                    background=bg)
         with clock:
             image.backward(grad_img)
     out["rasterizer_backward"] = clock.result()

@@ -135,10 +135,10 @@ def evaluate_run(
             ).vertices[0].float()
             gs = run.avatar(verts, as_tensor("body_pose", i)[0])
             cam = frame.camera
+            viewmat = torch.tensor(cam.viewmat, device=dev)
             image, _, _ = rasterize(
-                gs.means, gs.quats, gs.scales, gs.opacities, gs.sh,
-                torch.tensor(cam.viewmat, device=dev), torch.tensor(cam.K, device=dev),
-                cam.width, cam.height, background=background, sh_degree=gs.sh_degree,
+                gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(viewmat), viewmat,
+                torch.tensor(cam.K, device=dev), cam.width, cam.height, background=background,
             )
             render = image.clamp(0.0, 1.0)
             mask = torch.tensor(frame.mask, dtype=torch.float32, device=dev)[..., None]

@@ -43,5 +43,5 @@ def pose_for_export(poser: Poser, motion_path: str | None, frame: int, rest: str
 def export_ply(poser: Poser, seq: PoseSequence, out: str | os.PathLike) -> int:
     """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count."""
     gs = poser.gaussians(poser.vertices(seq)[0], seq.body_pose[0])
-    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)
+    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh())
     return int(gs.means.shape[0])

@@ -49,6 +49,12 @@ class PlyGaussians:
     sh: torch.Tensor
     sh_degree: int
 
+    def colors(self, viewmat: torch.Tensor) -> torch.Tensor:
+        """RGB [N,3] seen by the camera ``viewmat`` [4,4] (the file's SH are in world axes)."""
+        from rmavatar.render.project import view_colors
+
+        return view_colors(self.sh, self.sh_degree, self.means, viewmat)
+
 
 def ply_property_names(num_sh: int) -> list[str]:
     """The 3DGS property names, in file order, for ``num_sh`` = K SH coefficients per channel."""

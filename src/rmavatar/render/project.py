@@ -153,3 +153,17 @@ def sh_to_rgb(sh: Tensor, degree: int, means: Tensor, campos: Tensor) -> Tensor:
     k = (degree + 1) ** 2
     basis = sh_basis(degree, means - campos)
     return torch.clamp_min((basis[:, :, None] * sh[:, :k, :]).sum(1) + 0.5, 0.0)
+
+
+def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames: Tensor | None = None) -> Tensor:
+    """RGB [N,3] of SH coefficients sh [N,K,3] seen by the camera ``viewmat`` [4,4] (world -> camera).
+
+    ``frames`` [N,3,3] (local -> world rotations) says the coefficients are expressed in per-Gaussian
+    local axes: the view direction is turned into them first. None: world axes, as in a 3DGS file.
+    """
+    viewmat = viewmat.to(means)
+    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    dirs = means - campos
+    if frames is not None:
+        dirs = torch.einsum("nji,nj->ni", frames, dirs)  # R^T d
+    return sh_to_rgb(sh, degree, dirs, torch.zeros_like(campos))

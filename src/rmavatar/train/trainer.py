@@ -415,8 +415,8 @@ class _Trainer:
         if not _all_finite(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh):
             return None  # the rasterizer refuses non-finite input; nothing was changed yet
         image, _, info = rasterize(
-            gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, self.viewmats[i], self.Ks[i],
-            self.width, self.height, background=bg, sh_degree=gs.sh_degree,
+            gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(self.viewmats[i]), self.viewmats[i],
+            self.Ks[i], self.width, self.height, background=bg,
         )
         loss, parts = total_loss(image, target, gs, cfg.loss)
         if not torch.isfinite(loss):
