@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rmavatar.cli import main
-from rmavatar.render.ply import read_gaussian_ply
+from rmavatar.export.ply import read_ply
 from rmavatar.render.scenes import figure_scene
 
 
@@ -38,10 +38,11 @@ def _write_ply(path, scene, sh_degree):
 def test_ply_roundtrip(tmp_path):
     scene = figure_scene(50, seed=1, sh_degree=2)
     _write_ply(tmp_path / "s.ply", scene, 2)
-    back = read_gaussian_ply(tmp_path / "s.ply")
-    assert back["sh_degree"] == 2
-    for k in ("means", "quats", "scales", "opacities", "colors"):
-        torch.testing.assert_close(back[k], scene[k], atol=1e-5, rtol=1e-5)
+    back = read_ply(tmp_path / "s.ply")
+    assert back.sh_degree == 2
+    for k, name in (("means", "means"), ("quats", "quats"), ("scales", "scales"), ("opacities", "opacities"),
+                    ("colors", "sh")):
+        torch.testing.assert_close(getattr(back, name), scene[k], atol=1e-5, rtol=1e-5)
 
 
 def test_render_random_and_ply(tmp_path):

@@ -71,9 +71,11 @@ def run(args: argparse.Namespace) -> int:
         scene["sh_degree"] = 3
         viewmat, K = orbit_camera(args.size, args.azimuth)
     else:
-        from rmavatar.render.ply import read_gaussian_ply
+        from rmavatar.export.ply import read_ply
 
-        scene = read_gaussian_ply(args.ply)
+        ply = read_ply(args.ply)
+        scene = {"means": ply.means, "quats": ply.quats, "scales": ply.scales, "opacities": ply.opacities,
+                 "colors": ply.sh, "sh_degree": ply.sh_degree}
         viewmat, K = _frame_camera(scene["means"], args.size, args.azimuth)
     device = "cuda" if args.backend != "cpu" and torch.cuda.is_available() else "cpu"
     to = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in scene.items()}
