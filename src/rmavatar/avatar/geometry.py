@@ -9,6 +9,8 @@ import math
 
 import torch
 
+from rmavatar.render.project import quat_to_rotmat, sh_basis  # quat_to_rotmat: part of this module's API
+
 # Below this length a vector is treated as zero: a degenerate triangle then gets a zero scale w
 # (its Gaussians collapse onto its centroid) instead of NaNs.
 _EPS = 1e-12
@@ -61,19 +63,6 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         ),
         dim=-1,
     )
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [...,3,3] of quaternions [...,4] (wxyz; normalised here)."""
-    w, x, y, z = _normalize(q).unbind(-1)
-    return torch.stack(
-        (
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ),
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
@@ -135,8 +124,6 @@ def sh_rotation_matrices(R: torch.Tensor, degree: int) -> list[torch.Tensor]:
     world directions. Solved exactly by least squares over fixed sample directions (bands are closed
     under rotation). Returns [M_1, ..., M_degree] (band 0 is invariant).
     """
-    from rmavatar.render.project import sh_basis
-
     dirs = _sample_dirs(20)  # one set for every band: the 20x16 basis matrix has full column rank
     world = sh_basis(degree, dirs)  # [S,K]
     local_dirs = torch.einsum("fji,sj->fsi", R, dirs.to(R.dtype))  # R^T d for every face

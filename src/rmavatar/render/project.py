@@ -40,8 +40,8 @@ class Projection:
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices [N,3,3] from wxyz quaternions [N,4] (normalised here)."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
+    """Rotation matrices [...,3,3] from wxyz quaternions [...,4] (normalised here)."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
