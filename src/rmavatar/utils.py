@@ -43,6 +43,20 @@ def resolve_device(name: str):
     return dev
 
 
+def check_writable_folder(path: str | os.PathLike, label: str | None = None) -> Path:
+    """Raise UserError unless the folder that will hold ``path`` exists and is writable; returns it.
+
+    ``label`` (e.g. "--json x.json") names the output in the message; default: the path itself."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    what = label or str(path)
+    if not parent.is_dir():
+        raise UserError(f"cannot write {what}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"cannot write {what}: folder {parent} is not writable")
+    return parent
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -57,11 +71,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     The temporary name keeps ``path``'s suffix, since writers such as imageio pick the format from it.
     """
     path = Path(path)
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"cannot write {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise UserError(f"cannot write {path}: folder {parent} is not writable")
+    parent = check_writable_folder(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + path.suffix, dir=parent)
     os.close(fd)
     tmp_path = Path(tmp)

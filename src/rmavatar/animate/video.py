@@ -13,7 +13,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from rmavatar.utils import UserError, atomic_dir, atomic_path
+from rmavatar.utils import UserError, atomic_dir, atomic_path, check_writable_folder
 
 VIDEO_SUFFIXES = (".mp4",)
 
@@ -40,10 +40,7 @@ def check_output(out: str | os.PathLike) -> Path:
         parent = parent.parent  # a frames folder's missing parents are created
     if parent.exists() and not parent.is_dir():
         raise UserError(f"cannot write {out}: {parent} is not a folder")
-    if not parent.is_dir():
-        raise UserError(f"cannot write {out}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"cannot write {out}: folder {parent} is not writable")
+    check_writable_folder(parent / path.name, str(out))
     if path.exists() and not folder and not os.access(path, os.W_OK):
         raise UserError(f"cannot write {out}: the file exists and is not writable")
     return path

@@ -246,7 +246,7 @@ def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: 
 # ---------------------------------------------------------------------------------------------------- run
 def _check(args) -> tuple[int, int]:
     from rmavatar.bench.raster import _parse_config
-    from rmavatar.utils import UserError
+    from rmavatar.utils import UserError, check_writable_folder
 
     for name in ("size", "gaussians", "repeats", "steps", "threads", "render_reference_size"):
         if getattr(args, name) < 1:
@@ -260,9 +260,7 @@ def _check(args) -> tuple[int, int]:
     if args.run is not None and not Path(args.run).is_dir():
         raise UserError(f"--run {args.run}: no such run folder")
     if args.json:  # fail now, not after minutes of measuring, if the result cannot be written
-        parent = Path(args.json).resolve().parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK):
-            raise UserError(f"cannot write --json {args.json}: folder {parent} is missing or not writable")
+        check_writable_folder(Path(args.json).resolve(), f"--json {args.json}")
     ref_n, ref_size = _parse_config(args.raster_reference)
     if ref_n < 1:
         raise UserError(f"--raster-reference needs at least one Gaussian, got {args.raster_reference!r}")

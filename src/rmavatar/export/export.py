@@ -8,7 +8,7 @@ from pathlib import Path
 from rmavatar.animate.drive import Poser
 from rmavatar.animate.motion import PoseSequence, motion_to_sequence
 from rmavatar.export.ply import write_ply
-from rmavatar.utils import UserError
+from rmavatar.utils import UserError, check_writable_folder
 
 
 def check_ply_output(path: Path) -> Path:
@@ -17,11 +17,7 @@ def check_ply_output(path: Path) -> Path:
         raise UserError(f"--ply {path}: the output file name must end in .ply")
     if path.is_dir():
         raise UserError(f"--ply {path} is a folder")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"cannot write {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"cannot write {path}: folder {parent} is not writable")
+    check_writable_folder(path)
     return path
 
 
