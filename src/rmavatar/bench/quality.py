@@ -14,11 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
-from rmavatar.utils import UserError, atomic_path
+from rmavatar.utils import UserError, atomic_path, check_writable_folder
 
 VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss")
 SPLITS = ("test", "novel_pose")
@@ -51,6 +50,7 @@ def variant_config(variant: str, data: str, size: int, iters: int, seed: int, ma
 def run_quality(work: Path, variants: list[str], data: str | None, size: int, iters: int, seed: int,
                 max_gaussians: int, threads: int, device: str, progress: bool = True) -> dict:
     """Train and score every variant under ``work``; returns the result dict (also what --json writes)."""
+    from rmavatar.bench.timing import machine_info
     from rmavatar.data.synth import SynthConfig, synthesize
     from rmavatar.evaluate import evaluate_run
     from rmavatar.train import train
@@ -89,8 +89,7 @@ def run_quality(work: Path, variants: list[str], data: str | None, size: int, it
         "max_gaussians": max_gaussians,
         "protocol": "full images, white background, PSNR per image then averaged, SSIM 11x11 Gaussian "
         "window (sigma 1.5), LPIPS AlexNet v0.1 on [-1,1] inputs, no test-time pose refinement",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "device": device,
-                    "threads": threads, "load_start": load_start, "load_end": os.getloadavg()},
+        "machine": {**machine_info(), "device": device, "load_start": load_start, "load_end": os.getloadavg()},
         "variants": rows,
     }
 
@@ -133,9 +132,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.json:  # fail now, not after an hour of training, if the result cannot be written
-        parent = Path(args.json).resolve().parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK):
-            raise UserError(f"cannot write --json {args.json}: folder {parent} is missing or not writable")
+        check_writable_folder(Path(args.json).resolve(), f"--json {args.json}")
     result = run_quality(args.work, args.variants, args.data, args.size, args.iters, args.seed,
                          args.max_gaussians, args.threads, args.device, progress=not args.quiet)
     table = format_table(result)
