@@ -136,15 +136,13 @@ def sh_rotation_matrices(R: torch.Tensor, degree: int) -> list[torch.Tensor]:
     return mats
 
 
-def rotate_sh(sh: torch.Tensor, mats: list[torch.Tensor], index: torch.Tensor | None = None) -> torch.Tensor:
-    """SH coefficients sh [N,K,3] (local frames) -> world frame, with the band matrices of
-    :func:`sh_rotation_matrices`; ``index`` [N] picks each coefficient set's frame (None: row i uses
-    frame i). Bands beyond len(mats) + 1 are not allowed."""
+def rotate_sh(sh: torch.Tensor, mats: list[torch.Tensor]) -> torch.Tensor:
+    """SH coefficients sh [N,K,3] in local frames -> world axes, row i with the band matrices
+    mats[l-1][i] of :func:`sh_rotation_matrices`. Bands beyond len(mats) are not allowed."""
     degree = math.isqrt(sh.shape[1]) - 1
     if degree > len(mats):
         raise ValueError(f"sh has degree {degree} but only {len(mats)} band matrices were given")
     out = [sh[:, :1]]
     for band in range(1, degree + 1):
-        m = mats[band - 1] if index is None else mats[band - 1][index]
-        out.append(m @ sh[:, band * band:(band + 1) ** 2])
+        out.append(mats[band - 1] @ sh[:, band * band:(band + 1) ** 2])
     return torch.cat(out, dim=1)
