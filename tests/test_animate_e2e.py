@@ -19,7 +19,7 @@ import pytest
 import roma
 import torch
 
-from rmavatar.cli import main
+from rmavatar.commands import main
 
 ITERS = 10
 SIZE = 32
@@ -92,24 +92,26 @@ def mask(img: np.ndarray, bg: int = 255) -> np.ndarray:
 def test_export_trained_run(trained_run, tmp_path, capsys):
     plyfile = pytest.importorskip("plyfile")
     from rmavatar.animate.camera import intrinsics, look_at
-    from rmavatar.animate.drive import render_image
+    from rmavatar.avatar import load_trained
     from rmavatar.export import read_ply
-    from rmavatar.train import load_run
+    from rmavatar.render import render_gaussians
+
+    def render_image(gs, view, K, width, height):
+        with torch.no_grad():
+            return render_gaussians(gs, view, K, width, height, torch.ones(3))[0]
 
     out = tmp_path / "avatar.ply"
     assert main(["export", str(trained_run), "--ply", str(out)]) == 0
     assert "Gaussians" in capsys.readouterr().out
     keep(out)
-    run = load_run(trained_run)
+    run = load_trained(trained_run)
     ply = plyfile.PlyData.read(str(out))
     assert ply["vertex"].count == run.avatar.num_gaussians
     assert "f_rest_8" in ply["vertex"].data.dtype.names and "f_rest_9" not in ply["vertex"].data.dtype.names
     # the avatar's own render (its forward in the zero pose) against the PLY as a static scene
     zero = torch.zeros(1, 3)
-    from rmavatar.animate.drive import run_betas
-
-    verts = run.body(run_betas(run), zero, torch.zeros(1, 69), zero).vertices[0]
-    run.avatar.active_sh_degree.fill_(run.avatar.max_sh_degree)
+    verts = run.body(run.betas, zero, torch.zeros(1, 69), zero).vertices[0]
+    run.avatar.active_sh_degree.fill_(run.avatar.config.sh_degree)
     with torch.no_grad():
         gs = run.avatar(verts, torch.zeros(69))
     back = read_ply(out)
@@ -185,10 +187,6 @@ def test_animate_bad_inputs_with_trained_run(trained_run, tmp_path, capsys):
 
 # ----------------------------------------------------------------------------------------------- turntable
 def test_turntable_trained_run(trained_run, tmp_path):
-    from rmavatar.cli import COMMANDS
-
-    if "render" not in COMMANDS:
-        pytest.skip("the render command is not registered yet")
     out = tmp_path / "turn.mp4"
     code = main(["render", str(trained_run), "--turntable", "--out", str(out), "--size", "48", "--frames", "12",
                  "--pose", "train"])
@@ -229,11 +227,10 @@ def test_view_command_serves_the_page(trained_run, tmp_path):
 
 
 def test_training_pose_is_the_subjects_a_pose(trained_run):
-    from rmavatar.animate.drive import Poser
+    from rmavatar.avatar import load_trained
     from rmavatar.data.synth.motion import A_POSE_DEG
-    from rmavatar.train import load_run
 
-    pose = Poser.from_run(load_run(trained_run)).rest_pose("train").body_pose[0]
+    pose = load_trained(trained_run).rest_pose("train").body_pose[0]
     # the synthetic subject turns in an A-pose: shoulders (SMPL joints 16/17) lowered by A_POSE_DEG
     assert abs(float(pose[15 * 3 + 2]) + math.radians(A_POSE_DEG)) < math.radians(10)
     assert abs(float(pose[16 * 3 + 2]) - math.radians(A_POSE_DEG)) < math.radians(10)

@@ -11,15 +11,12 @@ import torch
 
 from rmavatar.animate.camera import intrinsics, look_at, orbit_viewmats, preset_viewmat
 from rmavatar.animate.motion import (
-    PoseSequence,
-    motion_to_sequence,
     parse_frame_range,
     recenter_motion,
-    rest_pose,
     upright_rotation,
 )
 from rmavatar.animate.video import check_output, frame_writer
-from rmavatar.body import Motion
+from rmavatar.body import Motion, PoseSequence, motion_to_sequence, rest_pose
 from rmavatar.utils import UserError
 
 
@@ -120,9 +117,10 @@ def test_recenter_motion_upright_facing_in_place(world):
 
 
 def test_rest_poses():
-    go, tpose = rest_pose("tpose")
+    t = rest_pose("tpose")
+    go, tpose = t.global_orient[0], t.body_pose[0]
     assert float(go.abs().sum() + tpose.abs().sum()) == 0.0
-    _, apose = rest_pose("apose")
+    apose = rest_pose("apose").body_pose[0]
     assert apose.shape == (69,) and int((apose != 0).sum()) == 2
     with pytest.raises(UserError):
         rest_pose("dab")

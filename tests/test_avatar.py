@@ -1,4 +1,4 @@
-"""Geometry, mesh-embedded Gaussians and the rectifier (SPEC §2)."""
+"""Geometry, mesh-embedded Gaussians and the rectifier (docs/model.md)."""
 
 import math
 
@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from rmavatar.avatar import (
+    GAUSSIAN_PARAMS,
     SH_C0,
     Avatar,
     AvatarConfig,
@@ -39,7 +40,7 @@ def random_rotation(gen, dtype=torch.float64):
 def randomise(avatar, gen):
     """Give the local parameters non-trivial values."""
     with torch.no_grad():
-        for p in avatar.gaussian_parameters().values():
+        for p in (getattr(avatar, name) for name in GAUSSIAN_PARAMS):
             p.copy_(torch.randn(p.shape, generator=gen, dtype=p.dtype) * 0.5)
 
 
@@ -148,7 +149,7 @@ def test_gaussians_move_rigidly_with_a_rigid_mesh():
 
 
 def test_rotated_sh_evaluates_like_local_sh_along_local_directions():
-    from rmavatar.avatar.geometry import rotate_sh, sh_rotation_matrices
+    from rmavatar.render.project import rotate_sh, sh_rotation_matrices
     from rmavatar.render.project import sh_to_rgb
 
     gen = torch.Generator().manual_seed(5)
@@ -273,7 +274,8 @@ def test_positional_encoding_values():
 def test_rectifier_shapes_and_fast_path_matches_plain_mlp():
     r = Rectifier().double()
     assert r.in_dim == 105
-    assert r.layer_widths == [(105, 128), (128, 128), (164, 128), (128, 128), (128, 10)]
+    widths = [(m.in_features, m.out_features) for m in (r.l1, r.l2, r.l3, r.l4, r.l5)]
+    assert widths == [(105, 128), (128, 128), (164, 128), (128, 128), (128, 10)]
     assert not any(isinstance(m, torch.nn.Dropout) for m in r.modules())
     gen = torch.Generator().manual_seed(4)
     with torch.no_grad():
@@ -392,10 +394,9 @@ def test_sh_degree_grows():
     v, f = sphere()
     av = Avatar(f, None, v, AvatarConfig(rectifier=False, sh_degree=2))
     assert av(v).sh.shape[1] == 1
-    av.increase_sh_degree()
+    av.set_progress(2, 100)  # one band every sh_every_frac (2%) of the run
     assert av(v).sh.shape[1] == 4 and av(v).sh_degree == 1
-    for _ in range(5):
-        av.increase_sh_degree()
+    av.set_progress(100, 100)
     assert av(v).sh.shape[1] == 9 and av(v).sh_degree == 2
 
 
@@ -418,7 +419,7 @@ class _Body:
 def test_checkpoint_state_round_trip_and_body_check():
     v, f = sphere()
     body = _Body(v, f)
-    a = Avatar.from_body(body, AvatarConfig(placement="area", num_gaussians=200, sh_degree=2))
+    a = AvatarConfig(placement="area", num_gaussians=200, sh_degree=2).build(body)
     assert a.num_gaussians == 200 and int(a.face_ids.max()) < f.shape[0] - 3
     a.set_progress(700, 1000)
     state = a.checkpoint_state()

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from rmavatar.bench.quality import VARIANTS, format_table, run_quality, variant_config
-from rmavatar.cli import main
+from rmavatar.commands import main
 from rmavatar.utils import UserError
 
 

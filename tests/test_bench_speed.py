@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import torch
 
-from rmavatar.cli import main
+from rmavatar.commands import main
 
 STAGES = {"body_forward", "mesh_embedding", "rectifier", "rasterizer_forward", "rasterizer_backward", "losses",
           "optimizer"}

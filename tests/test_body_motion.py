@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from rmavatar.body import load_body_model, load_motion
-from rmavatar.cli import main
+from rmavatar.commands import main
 from rmavatar.utils import UserError
 
 MOTIONS = Path(__file__).resolve().parents[2] / "shared" / "data" / "motions"

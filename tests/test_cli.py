@@ -2,7 +2,7 @@ import subprocess
 import sys
 
 import rmavatar
-from rmavatar.cli import main
+from rmavatar.commands import main
 
 
 def test_version(capsys):

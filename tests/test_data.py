@@ -9,9 +9,10 @@ import pytest
 from PIL import Image
 
 from rmavatar.data import Camera, NativeMeta, load_dataset, write_native
-from rmavatar.data.dataset import parse_spec, target_size
+from rmavatar.data.dataset import target_size
 from rmavatar.data.io import resample
 from rmavatar.data.peoplesnapshot import SUBJECTS, split_frames
+from rmavatar.data.registry import parse_spec
 from rmavatar.data.zju import SPLITS as ZJU_SPLITS
 from rmavatar.data.zju import undistort_maps, zju_to_smpl_params
 from rmavatar.utils import UserError
@@ -209,7 +210,7 @@ def test_native_bad_input(tmp_path):
 
 # --- PeopleSnapshot --------------------------------------------------------------------------------
 
-SPEC_COUNTS = {  # SPEC §3's table: train / val / test frame counts
+SPEC_COUNTS = {  # the standard splits (docs/data.md): train / val / test frame counts
     "male-3-casual": (114, 1, 55), "male-4-casual": (110, 1, 36),
     "female-3-casual": (112, 1, 51), "female-4-casual": (84, 1, 48),
 }
@@ -488,7 +489,7 @@ def test_zju_bad_input(tmp_path):
 def test_inspect_all_kinds(tmp_path, capsys):
     import json
 
-    from rmavatar.cli import main
+    from rmavatar.commands import main
 
     nat = tmp_path / "nat"
     _, _, _, params = make_native(nat, per_frame=False)
@@ -514,7 +515,7 @@ def test_inspect_all_kinds(tmp_path, capsys):
 
     # ZJU needs a body for J0; the CLI's --body takes a spec, so check the summary through the API
     from rmavatar.data import load_dataset
-    from rmavatar.data.inspect_cli import summarize
+    from rmavatar.data.summary import summarize
 
     with pytest.warns(UserWarning, match="no standard split"):
         s = summarize(load_dataset(f"zju:{zju}", body=j0_of))
@@ -615,7 +616,7 @@ def test_inspect_overlay_projects_the_body_onto_its_silhouette(tmp_path):
     from PIL import ImageDraw
 
     from rmavatar.body import load_body_model
-    from rmavatar.data.inspect_cli import overlay_sheet
+    from rmavatar.data.summary import overlay_sheet
 
     body = load_body_model("anny")
     w, h = 64, 96

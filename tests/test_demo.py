@@ -3,7 +3,6 @@
 import json
 
 import imageio.v3 as iio
-import numpy as np
 
 from rmavatar.demo import DemoConfig, run_demo
 from rmavatar.export.ply import read_ply

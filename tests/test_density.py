@@ -8,8 +8,8 @@ import trimesh
 
 from rmavatar.avatar import GAUSSIAN_PARAMS, Avatar, AvatarConfig, quat_to_rotmat
 from rmavatar.train.density import (
+    DensityConfig,
     DensityController,
-    DensitySchedule,
     densify,
     prune,
     prune_mask,
@@ -25,9 +25,20 @@ def make(n=None, rectifier=False):
     return Avatar(f, None, v, cfg), v
 
 
+def gaussian_parameters(av):
+    return {name: getattr(av, name) for name in GAUSSIAN_PARAMS}
+
+
+def controller(av, opt, start, every, stop, reset_start, reset_every, seed=0, **thresholds):
+    """A controller whose schedule is exactly the given iterations (a run as long as the reference)."""
+    cfg = DensityConfig(reference_iters=1000, start=start, every=every, stop=stop, reset_start=reset_start,
+                        reset_every=reset_every, **thresholds)
+    return DensityController(av, opt, cfg, iters=1000, seed=seed)
+
+
 def adam_with_state(av, seed=0):
     """Adam over the avatar with one real step taken, so every parameter has moments."""
-    groups = [{"params": [p], "lr": 1e-3, "name": name} for name, p in av.gaussian_parameters().items()]
+    groups = [{"params": [p], "lr": 1e-3, "name": name} for name, p in gaussian_parameters(av).items()]
     if av.rectifier is not None:
         groups.append({"params": list(av.rectifier.parameters()), "lr": 1e-4})
     opt = torch.optim.Adam(groups, eps=1e-15)
@@ -40,7 +51,7 @@ def adam_with_state(av, seed=0):
 
 
 def check_optimizer_matches(av, opt):
-    params = av.gaussian_parameters()
+    params = gaussian_parameters(av)
     in_opt = {id(p) for g in opt.param_groups for p in g["params"]}
     for name, p in params.items():
         assert id(p) in in_opt, f"{name} is not the optimizer's parameter"
@@ -50,15 +61,15 @@ def check_optimizer_matches(av, opt):
 
 
 def test_paper_schedule_and_scaling():
-    s = DensitySchedule()
+    s = DensityConfig().schedule(50_000)
     assert [s.densify_at(i) for i in (9_500, 10_000, 10_250, 10_500, 34_500, 35_000)] == [False, True, False, True, True, False]
     assert [i for i in range(1, 50_001) if s.reset_at(i)] == [10_000, 15_000, 20_000, 25_000, 30_000]
     assert s.gather_at(34_999) and not s.gather_at(35_000)
-    t = DensitySchedule.scaled(5_000)
+    t = DensityConfig().schedule(5_000)
     assert (t.start, t.every, t.stop, t.reset_start, t.reset_every) == (1_000, 50, 3_500, 1_000, 500)
-    z = DensitySchedule.scaled(50_000, reference_iters=50_000, start=15_000, every=100)
+    z = DensityConfig(reference_iters=50_000, start=15_000, every=100).schedule(50_000)
     assert (z.start, z.every) == (15_000, 100)
-    tiny = DensitySchedule.scaled(20)
+    tiny = DensityConfig().schedule(20)
     assert tiny.every >= 1 and tiny.reset_every >= 1
 
 
@@ -77,7 +88,7 @@ def test_pruning_everything_keeps_one_per_face_and_adam_rows():
     gen = torch.Generator().manual_seed(1)
     with torch.no_grad():
         av.opacity_logits.copy_(torch.rand(av.num_gaussians, generator=gen) * 3 - 12)  # all < 0.005
-    before = {name: (p.detach().clone(), opt.state[p]["exp_avg"].clone()) for name, p in av.gaussian_parameters().items()}
+    before = {name: (p.detach().clone(), opt.state[p]["exp_avg"].clone()) for name, p in gaussian_parameters(av).items()}
     old_faces = av.face_ids.clone()
     best = {}
     logits = av.opacity_logits.tolist()
@@ -90,7 +101,7 @@ def test_pruning_everything_keeps_one_per_face_and_adam_rows():
     kept = torch.tensor(sorted(best.values()))
     assert torch.equal(av.face_ids, old_faces[kept])
     check_optimizer_matches(av, opt)
-    for name, p in av.gaussian_parameters().items():
+    for name, p in gaussian_parameters(av).items():
         assert torch.equal(p.detach(), before[name][0][kept])
         assert torch.equal(opt.state[p]["exp_avg"], before[name][1][kept])
     av(v)  # still renders
@@ -112,8 +123,8 @@ def test_clone_and_split_in_the_parent_frame():
     grad = torch.zeros(n)
     sel = torch.arange(n) % 3 == 0
     grad[sel] = 1e-3
-    old = {name: p.detach().clone() for name, p in av.gaussian_parameters().items()}
-    old_m = {name: opt.state[p]["exp_avg_sq"].clone() for name, p in av.gaussian_parameters().items()}
+    old = {name: p.detach().clone() for name, p in gaussian_parameters(av).items()}
+    old_m = {name: opt.state[p]["exp_avg_sq"].clone() for name, p in gaussian_parameters(av).items()}
     old_faces = av.face_ids.clone()
     n_clone, n_split = densify(av, opt, grad, 2e-4, 0.01, generator=torch.Generator().manual_seed(3))
     ci = (sel & small).nonzero().squeeze(-1)
@@ -124,12 +135,12 @@ def test_clone_and_split_in_the_parent_frame():
     keep = (~(sel & ~small)).nonzero().squeeze(-1)
     k = len(keep)
     # Kept rows unchanged with their moments; new rows' moments are zero.
-    for name, p in av.gaussian_parameters().items():
+    for name, p in gaussian_parameters(av).items():
         assert torch.equal(p.detach()[:k], old[name][keep])
         assert torch.equal(opt.state[p]["exp_avg_sq"][:k], old_m[name][keep])
         assert (opt.state[p]["exp_avg_sq"][k:] == 0).all()
     # Clones: exact copies, same face.
-    for name, p in av.gaussian_parameters().items():
+    for name, p in gaussian_parameters(av).items():
         assert torch.equal(p.detach()[k : k + n_clone], old[name][ci])
     assert torch.equal(av.face_ids[k : k + n_clone], old_faces[ci])
     # Split children: parent's face, scale / 1.6, same rotation, displaced.
@@ -189,8 +200,8 @@ def test_controller_statistics_and_cycle():
     av, v = make(rectifier=True)
     opt = adam_with_state(av)
     n = av.num_gaussians
-    sched = DensitySchedule(start=2, every=2, stop=5, reset_start=4, reset_every=10)
-    ctl = DensityController(av, opt, sched, grad_threshold=2e-4, percent_dense=0.01)
+    ctl = controller(av, opt, start=2, every=2, stop=5, reset_start=4, reset_every=10, grad_threshold=2e-4,
+                     percent_dense=0.01)
     m2d = torch.zeros(n, 2, requires_grad=True)
     m2d.grad = torch.zeros(n, 2)
     m2d.grad[:, 0] = 1e-4
@@ -231,8 +242,7 @@ def test_with_the_real_rasterizer():
     av, v = make(rectifier=True)
     av.active_sh_degree.fill_(1)
     opt = adam_with_state(av)
-    ctl = DensityController(av, opt, DensitySchedule(start=1, every=1, stop=10, reset_start=100, reset_every=100),
-                            grad_threshold=0.0)
+    ctl = controller(av, opt, start=1, every=1, stop=10, reset_start=100, reset_every=100, grad_threshold=0.0)
     viewmat = torch.eye(4)
     viewmat[2, 3] = 2.0
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
@@ -250,14 +260,14 @@ def test_with_the_real_rasterizer():
     img, _, info = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmat, K, 32, 32, sh_degree=g.sh_degree)
     img.square().mean().backward()
     opt.step()
-    assert all(p.grad is not None for p in av.gaussian_parameters().values())
+    assert all(p.grad is not None for p in gaussian_parameters(av).values())
 
 
 def test_controller_state_round_trip_gives_identical_splits():
     def setup():
         av, _ = make(n=150)
-        ctl = DensityController(av, None, DensitySchedule(start=1, every=1, stop=10, reset_start=99, reset_every=99),
-                                percent_dense=0.0, seed=5)
+        ctl = controller(av, None, start=1, every=1, stop=10, reset_start=99, reset_every=99, percent_dense=0.0,
+                         seed=5)
         return av, ctl
 
     a, ca = setup()

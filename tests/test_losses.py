@@ -6,7 +6,8 @@ import pytest
 import torch
 import trimesh
 
-from rmavatar.avatar import Avatar, AvatarConfig, GaussianSet
+from rmavatar.avatar import Avatar, AvatarConfig
+from rmavatar.render import GaussianSet
 from rmavatar.train.config import LossConfig
 from rmavatar.train.losses import offset_loss, position_loss, scaling_loss, total_loss
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.cli import main
+from rmavatar.commands import main
 from rmavatar.utils import UserError
 
 SIZE = 48
@@ -47,8 +47,9 @@ def write_dataset(path, images, masks, p, splits):
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A run trained for two steps, and a dataset whose test frames are that run's own renders."""
+    from rmavatar.avatar import load_trained
     from rmavatar.render import rasterize
-    from rmavatar.train import TrainConfig, load_run, train
+    from rmavatar.train import TrainConfig, train
 
     root = tmp_path_factory.mktemp("eval")
     n = 4
@@ -67,7 +68,7 @@ def tiny(tmp_path_factory):
     train(cfg, run_dir, progress=False)
 
     # The oracle: render the test frames directly, white background.
-    run = load_run(run_dir)
+    run = load_trained(run_dir)
     cam = camera_dict(n)
     renders = []
     with torch.no_grad():

@@ -21,7 +21,7 @@
 
 Both share the ImageNet backbone weights with us (there is no other offline copy), so they check the
 network, input scaling, normalisation, pooling and heads, not the weights. The LPIPS repository's own
-example images (0.722 / 0.138 in SPEC §6) are not available offline and are not used here.
+example images (0.722 / 0.138 with the official implementation) are not available offline and are not used here.
 """
 
 from __future__ import annotations

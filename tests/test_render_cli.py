@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.cli import main
+from rmavatar.commands import main
 from rmavatar.export.ply import read_ply
 from rmavatar.render.scenes import figure_scene
 

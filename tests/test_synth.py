@@ -67,7 +67,12 @@ def test_end_to_end_loads_back_with_splits(tmp_path):
 def test_tunic_moves_non_rigidly_with_the_pose():
     from rmavatar.body import load_body_model
     from rmavatar.data.synth.motion import novel_motion, turn_motion
-    from rmavatar.data.synth.subject import build_subject, garment_state, pose_shell, vertex_normals
+    from rmavatar.data.synth.subject import (
+        build_subject,
+        garment_state,
+        pose_shell,
+        vertex_normals,
+    )
 
     body = load_body_model("anny")
     subject = build_subject(body, 0)

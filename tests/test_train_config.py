@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from rmavatar.avatar.trained import MARKER, body_signature, check_body, checkpoint_path, read_checkpoint
+from rmavatar.commands.train import add_arguments, config_from_args
 from rmavatar.train import checkpoint as ck
-from rmavatar.train.cli import add_arguments, config_from_args
 from rmavatar.train.config import TrainConfig, load_config, save_config
-from rmavatar.train.trainer import FrameSampler, composite_target, position_lr
+from rmavatar.train.optim import position_lr
+from rmavatar.train.trainer import FrameSampler, composite_target
 from rmavatar.utils import UserError
 
 
@@ -108,18 +110,18 @@ def test_run_dir_ownership(tmp_path):
     (foreign / "thesis.tex").write_text("precious")
     with pytest.raises(UserError, match="someone else"):
         ck.prepare_run_dir(foreign, "/data/a", resume=False)
-    assert (foreign / "thesis.tex").read_text() == "precious" and not (foreign / ck.MARKER).exists()
+    assert (foreign / "thesis.tex").read_text() == "precious" and not (foreign / MARKER).exists()
     run = tmp_path / "run"
     with pytest.raises(UserError, match="no run to resume"):
         ck.prepare_run_dir(run, "/data/a", resume=True)
     ck.prepare_run_dir(run, "/data/a", resume=False)
-    assert json.loads((run / ck.MARKER).read_text())["data"] == "/data/a"
+    assert json.loads((run / MARKER).read_text())["data"] == "/data/a"
     ck.prepare_run_dir(run, "/data/a", resume=False)  # no checkpoint yet: starting over is fine
     ck.prepare_run_dir(run, "/data/b", resume=False)  # ... even with other data (a failed start)
-    assert json.loads((run / ck.MARKER).read_text())["data"] == "/data/b"
+    assert json.loads((run / MARKER).read_text())["data"] == "/data/b"
     with pytest.raises(UserError, match="no checkpoint"):
         ck.prepare_run_dir(run, "/data/b", resume=True)
-    ck.save_checkpoint(ck.checkpoint_path(run), {"iteration": 3})
+    ck.save_checkpoint(checkpoint_path(run), {"iteration": 3})
     with pytest.raises(UserError, match="--resume"):
         ck.prepare_run_dir(run, "/data/b", resume=False)
     with pytest.raises(UserError, match="another dataset"):
@@ -142,7 +144,7 @@ def test_checkpoint_io_and_rng(tmp_path):
     np.random.seed(9)
     random.seed(9)
     g.manual_seed(9)
-    loaded = ck.read_checkpoint(path)
+    loaded = read_checkpoint(path)
     assert loaded["iteration"] == 7 and torch.equal(loaded["t"], torch.arange(3))
     ck.restore_rng(loaded["rng"], g)
     got = (torch.rand(2), np.random.rand(2), random.random(), torch.rand(2, generator=g))
@@ -151,10 +153,10 @@ def test_checkpoint_io_and_rng(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["last.pt"]  # no temp files left behind
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(UserError, match="not a readable"):
-        ck.read_checkpoint(tmp_path / "junk.pt")
+        read_checkpoint(tmp_path / "junk.pt")
     torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
     with pytest.raises(UserError, match="not an rmavatar checkpoint"):
-        ck.read_checkpoint(tmp_path / "other.pt")
+        read_checkpoint(tmp_path / "other.pt")
 
 
 def test_body_signature_mismatch_is_a_clear_error():
@@ -164,6 +166,6 @@ def test_body_signature_mismatch_is_a_clear_error():
 
     a = Body("anny:female", 4, torch.tensor([[0, 1, 2], [0, 2, 3]]))
     b = Body("smpl:/x", 4, torch.tensor([[0, 1, 2], [1, 2, 3]]))
-    ck.check_body(ck.body_signature(a), a, "ckpt")
+    check_body(body_signature(a), a, "ckpt")
     with pytest.raises(UserError, match="incompatible"):
-        ck.check_body(ck.body_signature(a), b, "ckpt")
+        check_body(body_signature(a), b, "ckpt")

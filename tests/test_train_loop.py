@@ -10,10 +10,10 @@ import time
 import pytest
 import torch
 
-from rmavatar.train import load_run
-from rmavatar.train import checkpoint as ck
+from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
+from rmavatar.train.checkpoint import save_checkpoint
 from rmavatar.train.config import TrainConfig
-from rmavatar.train.trainer import _Trainer, train
+from rmavatar.train.trainer import Trainer, train
 from rmavatar.utils import UserError
 
 SIZE = 64
@@ -42,7 +42,7 @@ def _cfg(data, iters, **log):
 
 
 def _params(run_dir):
-    return ck.read_checkpoint(ck.checkpoint_path(run_dir))["avatar"]["state_dict"]
+    return read_checkpoint(checkpoint_path(run_dir))["avatar"]["state_dict"]
 
 
 def _mean_train_psnr(avatar, trainer) -> float:
@@ -58,7 +58,7 @@ def _mean_train_psnr(avatar, trainer) -> float:
             view = trainer.viewmats[i]
             image, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view,
                                     trainer.Ks[i], trainer.width, trainer.height, background=bg)
-            target = trainer._frame_target(i, bg)
+            target = trainer.target(i, bg)
             values.append(10 * torch.log10(1 / ((image.clamp(0, 1) - target) ** 2).mean()).item())
     return sum(values) / len(values)
 
@@ -74,10 +74,10 @@ def test_training_raises_psnr_well_above_the_start(data, tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "psnr=" in proc.stderr and "N=" in proc.stderr  # the progress bar reports them
-    probe = _Trainer(_cfg(data, iters), tmp_path / "probe", None, progress=False)
-    probe._setup()
+    probe = Trainer(_cfg(data, iters), tmp_path / "probe", progress=False)
+    probe.setup()
     before = _mean_train_psnr(probe.avatar, probe)  # the untrained (grey) avatar
-    loaded = load_run(run)
+    loaded = load_trained(run)
     after = _mean_train_psnr(loaded.avatar, probe)
     print(f"mean training PSNR: {before:.2f} dB untrained -> {after:.2f} dB after {iters} iterations")
     assert after - before >= 6.0
@@ -92,7 +92,7 @@ def test_training_raises_psnr_well_above_the_start(data, tmp_path):
 
 def _interrupt_at(monkeypatch, k, sig=signal.SIGINT):
     """Deliver a real signal to this process right after iteration k."""
-    original = _Trainer.step
+    original = Trainer.step
 
     def step(self):
         out = original(self)
@@ -100,7 +100,7 @@ def _interrupt_at(monkeypatch, k, sig=signal.SIGINT):
             os.kill(os.getpid(), sig)
         return out
 
-    monkeypatch.setattr(_Trainer, "step", step)
+    monkeypatch.setattr(Trainer, "step", step)
 
 
 def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
@@ -111,7 +111,7 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
         _interrupt_at(m, k)
         first = train(_cfg(data, n), tmp_path / "split", progress=False)
     assert first.interrupted and first.iteration == k
-    assert ck.read_checkpoint(ck.checkpoint_path(tmp_path / "split"))["iteration"] == k
+    assert read_checkpoint(checkpoint_path(tmp_path / "split"))["iteration"] == k
     second = train(None, tmp_path / "split", resume=True, progress=False)
     assert second.iteration == n and not second.interrupted
     a, b = _params(tmp_path / "straight"), _params(tmp_path / "split")
@@ -121,8 +121,8 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
     # One thread: every kernel is deterministic, so the two runs agree bit for bit.
     for key in a:
         assert torch.equal(a[key], b[key]), key
-    oa = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "straight"))["optimizer"]["state"]
-    ob = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "split"))["optimizer"]["state"]
+    oa = read_checkpoint(checkpoint_path(tmp_path / "straight"))["optimizer"]["state"]
+    ob = read_checkpoint(checkpoint_path(tmp_path / "split"))["optimizer"]["state"]
     assert oa.keys() == ob.keys()
     for idx in oa:
         for key in ("step", "exp_avg", "exp_avg_sq"):
@@ -133,7 +133,7 @@ def test_sigterm_also_saves_and_stops(data, tmp_path, monkeypatch):
     _interrupt_at(monkeypatch, 2, signal.SIGTERM)
     result = train(_cfg(data, 6), tmp_path / "run", progress=False)
     assert result.interrupted and result.iteration == 2
-    assert ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))["iteration"] == 2
+    assert read_checkpoint(checkpoint_path(tmp_path / "run"))["iteration"] == 2
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers restored
 
 
@@ -142,11 +142,11 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
     cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", "400",
            "--size", str(SIZE), "--checkpoint-every", "3", "--threads", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    path = ck.checkpoint_path(run)
+    path = checkpoint_path(run)
     deadline = time.time() + 120
     try:
         while time.time() < deadline:
-            if path.is_file() and ck.read_checkpoint(path)["iteration"] >= 6:
+            if path.is_file() and read_checkpoint(path)["iteration"] >= 6:
                 break
             assert proc.poll() is None, "training ended early"
             time.sleep(0.05)
@@ -156,7 +156,7 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
     finally:
         proc.kill()
         proc.wait()
-    saved = ck.read_checkpoint(path)["iteration"]
+    saved = read_checkpoint(path)["iteration"]
     assert saved >= 6 and saved % 3 == 0
     # Resume (in-process, shorter run via --iters) starts exactly at the checkpoint.
     cfg_iters = [(saved + 2, "optim", "iters")]
@@ -166,9 +166,9 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
 
 
 def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
-    import rmavatar.train.losses as losses
+    import rmavatar.train.trainer as trainer  # the step calls the loss through the trainer's name for it
 
-    original = losses.total_loss
+    original = trainer.total_loss
     calls = {"n": 0}
 
     def poisoned(render, target, gaussians, weights=None, **kw):
@@ -180,31 +180,31 @@ def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
             render.register_hook(lambda g: torch.full_like(g, float("nan")))
         return loss, parts
 
-    monkeypatch.setattr(losses, "total_loss", poisoned)
+    monkeypatch.setattr(trainer, "total_loss", poisoned)
     result = train(_cfg(data, 5), tmp_path / "run", progress=False)
     assert result.iteration == 5
     state = _params(tmp_path / "run")
     assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
-    opt = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))["optimizer"]["state"]
+    opt = read_checkpoint(checkpoint_path(tmp_path / "run"))["optimizer"]["state"]
     assert int(opt[0]["step"]) == 3  # 5 iterations, 2 skipped
 
 
 def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_path, monkeypatch):
-    import rmavatar.train.losses as losses
+    import rmavatar.train.trainer as trainer  # the step calls the loss through the trainer's name for it
 
-    original = losses.total_loss
+    original = trainer.total_loss
 
     def always_nan(*a, **kw):
         loss, parts = original(*a, **kw)
         return loss * float("nan"), parts
 
-    monkeypatch.setattr(losses, "total_loss", always_nan)
+    monkeypatch.setattr(trainer, "total_loss", always_nan)
     cfg = _cfg(data, 50, max_bad_steps=3)
     with pytest.raises(UserError, match="3 consecutive steps"):
         train(cfg, tmp_path / "run", progress=False)
-    saved = ck.read_checkpoint(ck.checkpoint_path(tmp_path / "run"))
-    fresh = _Trainer(_cfg(data, 50), tmp_path / "probe", None, progress=False)
-    fresh._setup()
+    saved = read_checkpoint(checkpoint_path(tmp_path / "run"))
+    fresh = Trainer(_cfg(data, 50), tmp_path / "probe", progress=False)
+    fresh.setup()
     for key, value in [*fresh.avatar.named_parameters(), ("face_ids", fresh.avatar.face_ids)]:
         assert torch.equal(saved["avatar"]["state_dict"][key], value), key
 
@@ -224,15 +224,15 @@ def test_refuses_foreign_and_mismatched_runs(data, tmp_path):
     with pytest.raises(UserError, match="cannot change"):
         train(None, run, resume=True, overrides=[(False, "model", "rectifier")], progress=False)
     # A checkpoint whose body topology differs from the body model it names.
-    path = ck.checkpoint_path(run)
-    payload = ck.read_checkpoint(path)
+    path = checkpoint_path(run)
+    payload = read_checkpoint(path)
     payload["body"]["num_faces"] += 1
     payload["body"]["faces_sha1"] = "0" * 40
     for key in ("format", "version"):
         payload.pop(key)
-    ck.save_checkpoint(path, payload)
+    save_checkpoint(path, payload)
     with pytest.raises(UserError, match="incompatible"):
-        load_run(run)
+        load_trained(run)
     with pytest.raises(UserError, match="incompatible"):
         train(None, run, resume=True, progress=False)
 
@@ -244,9 +244,9 @@ def test_ablations_and_backgrounds_run(data, tmp_path):
     cfg.background = "random"
     result = train(cfg, tmp_path / "norect", progress=False)
     assert result.iteration == 3
-    loaded = load_run(tmp_path / "norect")
-    assert loaded.avatar.rectifier is None and not loaded.config.model.rectifier
-    groups = [g["name"] for g in ck.read_checkpoint(ck.checkpoint_path(tmp_path / "norect"))["optimizer"]["param_groups"]]
+    loaded = load_trained(tmp_path / "norect")
+    assert loaded.avatar.rectifier is None and not loaded.config["model"]["rectifier"]
+    groups = [g["name"] for g in read_checkpoint(checkpoint_path(tmp_path / "norect"))["optimizer"]["param_groups"]]
     assert groups == ["position", "rotation", "scaling", "opacity", "sh_dc", "sh_rest"]
     cfg = _cfg(data, 2)
     cfg.background = "black"

@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from headless import find_browser, screenshot
 from test_animate_avatar import dance
 from test_animate_e2e import trained_run  # noqa: F401 - a session fixture: the small trained run
 
-from rmavatar.animate.drive import Poser
-from rmavatar.animate.motion import motion_to_sequence
-from rmavatar.body import Motion
+from rmavatar.avatar import load_trained
+from rmavatar.body import Motion, motion_to_sequence
 from rmavatar.viewer.app import SH_C0, avatar_viewer, splat_arrays
-from rmavatar.viewer.headless import find_browser, screenshot
 
 W, H = 800, 600
 
@@ -55,11 +54,10 @@ def test_splat_arrays_match_3dgs_definitions():
 
 @pytest.fixture
 def viewer(trained_run):  # noqa: F811
-    from rmavatar.train import load_run
 
     poses, trans = dance(n=6, drift=3.0)
     seq = motion_to_sequence(Motion(poses[:, :3], poses[:, 3:], trans, fps=30.0))
-    v = avatar_viewer(Poser.from_run(load_run(trained_run)), seq, fps=30.0, port=free_port())
+    v = avatar_viewer(load_trained(trained_run), seq, fps=30.0, port=free_port())
     yield v
     v.close()
 

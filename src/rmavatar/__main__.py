@@ -1,3 +1,3 @@
-from rmavatar.cli import main
+from rmavatar.commands import main
 
 raise SystemExit(main())

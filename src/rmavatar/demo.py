@@ -6,24 +6,12 @@ renders an animation and a turntable, exports a PLY, and writes ``DIR/metrics.js
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from rmavatar.utils import UserError, atomic_path
-
-EXAMPLES = """\
-examples:
-  rmavatar demo                          # everything into ./demo_out (about 10 minutes on 2 CPU cores)
-  rmavatar demo --out /tmp/d --seed 3    # another synthetic subject
-  rmavatar demo --size 128 --iters 600   # a quicker, rougher run
-
-The folder then holds data/ (the synthetic dataset), run/ (the trained avatar: rmavatar eval|animate|
-export|view RUN work on it), eval_test/ and eval_novel_pose/ (render | ground truth | error images),
-animation.mp4, turntable.mp4, avatar.ply and metrics.json.
-"""
 
 
 @dataclass
@@ -66,14 +54,13 @@ def _check_out(out: Path) -> None:
 
 def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     """Run every step; returns the metrics dict also written to ``cfg.out / 'metrics.json'``."""
-    from rmavatar.animate.drive import Poser
     from rmavatar.animate.jobs import VideoOptions, animate_video, turntable_video
-    from rmavatar.animate.motion import motion_to_sequence
-    from rmavatar.body import load_motion
+    from rmavatar.avatar import load_trained
+    from rmavatar.body import load_motion, motion_to_sequence
     from rmavatar.data.synth import SynthConfig, synthesize
     from rmavatar.evaluate import evaluate_run
     from rmavatar.export.export import export_ply
-    from rmavatar.train import TrainConfig, load_run, train
+    from rmavatar.train import TrainConfig, train
 
     out = cfg.out
     _check_out(out)
@@ -117,19 +104,18 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
         metrics[split]["frames"] = len(res["frames"])
         timings[f"eval_{split}_seconds"] = time.perf_counter() - t
 
-    run = load_run(run_dir)
-    poser = Poser.from_run(run)
+    trained = load_trained(run_dir)
     opts = VideoOptions(size=cfg.video_size, fps=30.0, progress=progress)
     motion_path = write_demo_motion(out / "motion.npz", cfg.animation_frames, cfg.seed)
     t = step(f"animation with {motion_path.name} -> animation.mp4")
     seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
-    animate_video(poser, seq, out / "animation.mp4", camera="fixed", opts=opts)
+    animate_video(trained, seq, out / "animation.mp4", camera="fixed", opts=opts)
     timings["animate_seconds"] = time.perf_counter() - t
     t = step("turntable -> turntable.mp4")
-    turntable_video(poser, out / "turntable.mp4", num_frames=cfg.turntable_frames, pose="train", opts=opts)
+    turntable_video(trained, out / "turntable.mp4", num_frames=cfg.turntable_frames, pose="train", opts=opts)
     timings["turntable_seconds"] = time.perf_counter() - t
     t = step("export -> avatar.ply")
-    num = export_ply(poser, poser.rest_pose("tpose"), out / "avatar.ply")
+    num = export_ply(trained, trained.rest_pose("tpose"), out / "avatar.ply")
     timings["export_seconds"] = time.perf_counter() - t
 
     metrics.update(
@@ -165,25 +151,3 @@ def _print_summary(out: Path, m: dict) -> None:
     for key, rel in m["files"].items():
         print(f"   {key:<16} {out / rel}")
     print(f"   {'metrics':<16} {out / 'metrics.json'}")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = EXAMPLES
-    d = DemoConfig()
-    parser.add_argument("--out", type=Path, default=d.out, help=f"output folder (default {d.out})")
-    parser.add_argument("--seed", type=int, default=d.seed, help="picks the synthetic subject and training seed")
-    parser.add_argument("--size", type=int, default=d.size, help=f"image size in pixels (default {d.size})")
-    parser.add_argument("--iters", type=int, default=d.iters, help=f"training iterations (default {d.iters})")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.size < 32:
-        raise UserError(f"--size must be at least 32 pixels (LPIPS needs it), got {args.size}")
-    if args.iters < 1:
-        raise UserError(f"--iters must be positive, got {args.iters}")
-    cfg = DemoConfig(out=args.out, seed=args.seed, size=args.size, iters=args.iters, threads=args.threads)
-    run_demo(cfg, progress=not args.quiet)
-    return 0

@@ -1,4 +1,4 @@
-"""Videos of an avatar: driven by a motion file (``rmavatar animate``) or turning in a rest pose
+"""Videos of a trained avatar: driven by a motion file (``rmavatar animate``) or turning in a rest pose
 (``rmavatar render RUN --turntable``)."""
 
 from __future__ import annotations
@@ -9,10 +9,18 @@ from dataclasses import dataclass
 import torch
 from tqdm import tqdm
 
-from rmavatar.animate.camera import framing_distance, intrinsics, orbit_viewmats, preset_viewmat
-from rmavatar.animate.drive import Poser, even_size, render_image
-from rmavatar.animate.motion import PoseSequence, recenter_motion
+from rmavatar.animate.camera import (
+    framing_distance,
+    intrinsics,
+    orbit_viewmats,
+    preset_viewmat,
+)
+from rmavatar.animate.motion import recenter_motion
 from rmavatar.animate.video import frame_writer, to_uint8
+from rmavatar.avatar.trained import TrainedAvatar
+from rmavatar.body import PoseSequence
+from rmavatar.render.camera import Camera
+from rmavatar.utils import UserError
 
 
 @dataclass
@@ -44,7 +52,7 @@ def _sample_frames(n: int, most: int = 32) -> list[int]:
     return sorted({round(i * (n - 1) / max(most - 1, 1)) for i in range(min(n, most))})
 
 
-def animate_video(poser: Poser, seq: PoseSequence, out: str | os.PathLike, camera: str = "fixed",
+def animate_video(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike, camera: str = "fixed",
                   opts: VideoOptions | None = None) -> int:
     """Render ``seq`` (already frame-selected) re-centred in front of the camera into ``out``.
 
@@ -52,11 +60,11 @@ def animate_video(poser: Poser, seq: PoseSequence, out: str | os.PathLike, camer
     Returns the number of frames written.
     """
     opts = opts or VideoOptions()
-    seq = recenter_motion(seq, poser.root_rest())
+    seq = recenter_motion(seq, trained.root_rest())
     n = len(seq)
     width, height = _frame_size(opts)
     K = intrinsics(width, height, opts.fov_deg)
-    sample = poser.vertices(seq.select(_sample_frames(n)))
+    sample = trained.vertices(seq.select(_sample_frames(n)))
     center, distance = frame_the_body(sample, opts)
     if camera == "orbit":
         views = orbit_viewmats(center, distance, n)
@@ -69,28 +77,51 @@ def animate_video(poser: Poser, seq: PoseSequence, out: str | os.PathLike, camer
         bar = tqdm(total=n, desc="animate", unit="frame", disable=not opts.progress)
         for s in range(0, n, chunk):
             part = seq.select(slice(s, s + chunk))
-            verts = poser.vertices(part)
+            verts = trained.vertices(part)
             for j in range(len(part)):
-                gs = poser.gaussians(verts[j], part.body_pose[j])
-                write(to_uint8(render_image(gs, views[s + j], K, width, height, opts.background)))
+                gs = trained.gaussians(verts[j], part.body_pose[j])
+                write(to_uint8(trained.render(gs, Camera(K, views[s + j], width, height), opts.background)))
                 bar.update(1)
         bar.close()
     return n
 
 
-def turntable_video(poser: Poser, out: str | os.PathLike, num_frames: int = 90, pose: str = "tpose",
+def turntable_video(trained: TrainedAvatar, out: str | os.PathLike, num_frames: int = 90, pose: str = "tpose",
                     opts: VideoOptions | None = None, elevation_deg: float = 0.0) -> int:
     """A 360-degree orbit around the avatar standing in a rest pose ('tpose', 'apose' or 'train', see
-    :meth:`Poser.rest_pose`) into ``out``."""
+    :meth:`TrainedAvatar.rest_pose`) into ``out``."""
     opts = opts or VideoOptions()
-    seq = poser.rest_pose(pose)
-    verts = poser.vertices(seq)
-    gs = poser.gaussians(verts[0], seq.body_pose[0])
+    seq = trained.rest_pose(pose)
+    verts = trained.vertices(seq)
+    gs = trained.gaussians(verts[0], seq.body_pose[0])
     width, height = _frame_size(opts)
     K = intrinsics(width, height, opts.fov_deg)
     center, distance = frame_the_body(verts, opts)
     views = orbit_viewmats(center, distance, num_frames, elevation_deg=elevation_deg)
     with frame_writer(out, opts.fps, width, height) as write:
         for view in tqdm(views, desc="turntable", unit="frame", disable=not opts.progress):
-            write(to_uint8(render_image(gs, view, K, width, height, opts.background)))
+            write(to_uint8(trained.render(gs, Camera(K, view, width, height), opts.background)))
     return num_frames
+
+
+def parse_background(text: str) -> tuple[float, float, float]:
+    """'white', 'black', or 'R,G,B' in 0..1 -> RGB."""
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
+    if text in named:
+        return named[text]
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise UserError(f"--bg must be white, black, gray or R,G,B with values in 0..1, got {text!r}")
+    return rgb
+
+
+def even_size(size: int, aspect: float = 1.0) -> tuple[int, int]:
+    """(width, height) of an image ``size`` pixels high, rounded up to even numbers (H.264 needs them)."""
+    if size < 2:
+        raise UserError(f"--size must be at least 2, got {size}")
+    height = size + size % 2
+    width = int(round(size * aspect))
+    return width + width % 2, height

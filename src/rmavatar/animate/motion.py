@@ -8,58 +8,11 @@ travel so the person dances in place and stays in view, keeping the vertical mot
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
-import numpy as np
 import roma
 import torch
 
+from rmavatar.body.poses import PoseSequence
 from rmavatar.utils import UserError
-
-
-@dataclass
-class PoseSequence:
-    """SMPL-convention poses: global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors)."""
-
-    global_orient: torch.Tensor
-    body_pose: torch.Tensor
-    transl: torch.Tensor
-
-    def __len__(self) -> int:
-        return int(self.global_orient.shape[0])
-
-    def select(self, index) -> "PoseSequence":
-        return PoseSequence(self.global_orient[index], self.body_pose[index], self.transl[index])
-
-    def to(self, device) -> "PoseSequence":
-        return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device))
-
-
-def motion_to_sequence(motion, source: str = "motion") -> PoseSequence:
-    """Check a loaded ``Motion``'s arrays and return them as a :class:`PoseSequence`.
-
-    ``source`` names the file in error messages.
-    """
-    arrays = {}
-    for name, width in (("global_orient", 3), ("body_pose", 69), ("transl", 3)):
-        a = getattr(motion, name, None)
-        if a is None:
-            raise UserError(f"{source}: motion has no {name}")
-        a = np.asarray(a)
-        if a.ndim != 2 or a.shape[1] != width:
-            raise UserError(f"{source}: {name} must have shape (frames, {width}), got {a.shape}")
-        arrays[name] = a
-    counts = {a.shape[0] for a in arrays.values()}
-    if len(counts) != 1:
-        raise UserError(f"{source}: global_orient, body_pose and transl have different frame counts "
-                        f"{[a.shape[0] for a in arrays.values()]}")
-    if counts.pop() == 0:
-        raise UserError(f"{source}: motion has no frames")
-    for name, a in arrays.items():
-        if not np.all(np.isfinite(a)):
-            raise UserError(f"{source}: {name} contains NaN or infinite values")
-    t = lambda a: torch.as_tensor(np.asarray(a, np.float32))  # noqa: E731
-    return PoseSequence(t(arrays["global_orient"]), t(arrays["body_pose"]), t(arrays["transl"]))
 
 
 def parse_frame_range(text: str | None, num_frames: int, step: int = 1) -> list[int]:
@@ -119,18 +72,3 @@ def recenter_motion(seq: PoseSequence, root_rest: torch.Tensor) -> PoseSequence:
     new_root[:, 1] = root[:, 1] - root[:, 1].mean()
     transl = new_root - j0
     return PoseSequence(orient.float(), seq.body_pose.clone(), transl.float())
-
-
-def rest_pose(kind: str = "tpose") -> tuple[torch.Tensor, torch.Tensor]:
-    """Canonical poses (global_orient [3], body_pose [69]): 'tpose' (all zero) or 'apose'
-    (arms lowered 45 degrees at the shoulders, as many avatar methods train in)."""
-    go = torch.zeros(3)
-    pose = torch.zeros(69)
-    if kind == "apose":
-        # body_pose holds joints 1..23; SMPL joints 16/17 are the left/right shoulders.
-        # The body's left arm points along +x, so lowering it is a negative turn about z.
-        pose[(16 - 1) * 3 + 2] = -np.pi / 4
-        pose[(17 - 1) * 3 + 2] = np.pi / 4
-    elif kind != "tpose":
-        raise UserError(f"unknown rest pose {kind!r} (choose tpose or apose)")
-    return go, pose

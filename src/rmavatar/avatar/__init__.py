@@ -1,17 +1,31 @@
-"""Mesh-embedded Gaussians and the pose-conditioned rectifier (the RMAvatar model)."""
+"""Mesh-embedded Gaussians and the pose-conditioned rectifier (the RMAvatar model), and a trained avatar
+read back from its run folder (``load_trained``)."""
 
-from rmavatar.avatar.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat, triangle_frames
-from rmavatar.avatar.model import GAUSSIAN_PARAMS, SH_C0, Avatar, AvatarConfig, GaussianSet, area_counts
+from rmavatar.avatar.geometry import (
+    quat_multiply,
+    quat_to_rotmat,
+    rotmat_to_quat,
+    triangle_frames,
+)
+from rmavatar.avatar.model import (
+    GAUSSIAN_PARAMS,
+    SH_C0,
+    Avatar,
+    AvatarConfig,
+    area_counts,
+)
 from rmavatar.avatar.rectifier import Rectifier, positional_encoding, window_alpha
+from rmavatar.avatar.trained import TrainedAvatar, load_trained
 
 __all__ = [
     "GAUSSIAN_PARAMS",
     "SH_C0",
     "Avatar",
     "AvatarConfig",
-    "GaussianSet",
     "Rectifier",
+    "TrainedAvatar",
     "area_counts",
+    "load_trained",
     "positional_encoding",
     "quat_multiply",
     "quat_to_rotmat",

@@ -5,11 +5,9 @@ All functions are batched over leading dimensions and differentiable.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
-from rmavatar.render.project import quat_to_rotmat, sh_basis  # quat_to_rotmat: part of this module's API
+from rmavatar.render.project import quat_to_rotmat  # part of this module's API
 
 # Below this length a vector is treated as zero: a degenerate triangle then gets a zero scale w
 # (its Gaussians collapse onto its centroid) instead of NaNs.
@@ -23,7 +21,7 @@ def _normalize(v: torch.Tensor) -> torch.Tensor:
 def triangle_frames(
     vertices: torch.Tensor, faces: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Local frame of every triangle of a batch of meshes (SPEC §2).
+    """Local frame of every triangle of a batch of meshes (docs/model.md).
 
     For face (v0, v1, v2): a0 = normalize(v1 - v0); a1 = normalize(a0 x (v2 - v0)) (the normal);
     a2 = a0 x a1 (in the triangle's plane); R = [a0 a1 a2] as columns (a proper rotation);
@@ -104,45 +102,3 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v [...,3] by quaternions q [...,4] (wxyz; normalised here)."""
     return (quat_to_rotmat(q) @ v.unsqueeze(-1)).squeeze(-1)
-
-
-def _sample_dirs(n: int) -> torch.Tensor:
-    """``n`` well-spread unit directions [n,3] (a Fibonacci sphere), float64."""
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    z = 1.0 - 2.0 * i / n
-    phi = i * math.pi * (3.0 - math.sqrt(5.0))
-    r = torch.sqrt(1.0 - z * z)
-    return torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), dim=-1)
-
-
-def sh_rotation_matrices(R: torch.Tensor, degree: int) -> list[torch.Tensor]:
-    """Per-band matrices that carry SH coefficients from a local frame to the world.
-
-    R [F,3,3] rotates local to world. For band l the matrix M_l [F,2l+1,2l+1] satisfies
-    Y_l(R^T d) = Y_l(d) M_l for every direction d (Y_l the band's basis row, gsplat's convention), so
-    coefficients c_local evaluated along local directions equal c_world = M_l c_local evaluated along
-    world directions. Solved exactly by least squares over fixed sample directions (bands are closed
-    under rotation). Returns [M_1, ..., M_degree] (band 0 is invariant).
-    """
-    dirs = _sample_dirs(20)  # one set for every band: the 20x16 basis matrix has full column rank
-    world = sh_basis(degree, dirs)  # [S,K]
-    local_dirs = torch.einsum("fji,sj->fsi", R, dirs.to(R.dtype))  # R^T d for every face
-    local = sh_basis(degree, local_dirs.reshape(-1, 3)).reshape(R.shape[0], dirs.shape[0], -1)  # [F,S,K]
-    mats = []
-    for band in range(1, degree + 1):
-        lo, hi = band * band, (band + 1) ** 2
-        pinv = torch.linalg.pinv(world[:, lo:hi]).to(R.dtype)  # [2l+1,S]
-        mats.append(torch.einsum("ks,fsj->fkj", pinv, local[..., lo:hi]))
-    return mats
-
-
-def rotate_sh(sh: torch.Tensor, mats: list[torch.Tensor]) -> torch.Tensor:
-    """SH coefficients sh [N,K,3] in local frames -> world axes, row i with the band matrices
-    mats[l-1][i] of :func:`sh_rotation_matrices`. Bands beyond len(mats) are not allowed."""
-    degree = math.isqrt(sh.shape[1]) - 1
-    if degree > len(mats):
-        raise ValueError(f"sh has degree {degree} but only {len(mats)} band matrices were given")
-    out = [sh[:, :1]]
-    for band in range(1, degree + 1):
-        out.append(mats[band - 1] @ sh[:, band * band:(band + 1) ** 2])
-    return torch.cat(out, dim=1)

@@ -1,4 +1,4 @@
-"""Mesh-embedded Gaussians with pose-conditioned rectification (paper §3.2-3.3, SPEC §2).
+"""Mesh-embedded Gaussians with pose-conditioned rectification (paper §3.2-3.3; docs/model.md).
 
 Every Gaussian belongs to one triangle (``face_ids``) and stores its attributes in that triangle's
 local frame (units of the triangle scale w). Posing is a similarity transform per triangle:
@@ -10,19 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from rmavatar.avatar.geometry import (
-    quat_multiply,
-    rotate_sh,
-    rotmat_to_quat,
-    sh_rotation_matrices,
-    triangle_frames,
-)
+from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_frames
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
+from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
 
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
@@ -33,10 +28,15 @@ GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "s
 
 @dataclass
 class AvatarConfig:
-    """How the avatar is built. ``placement``: "face" = one Gaussian per binding face (the paper);
-    "area" = ``num_gaussians`` in total, at least one per face, the rest given out by triangle area
-    (Anny's faces differ ~100x in size), placed uniformly inside their triangle."""
+    """How the avatar is built; ``build(body)`` makes it (``TrainConfig.model`` is this config).
 
+    ``placement``: "face" = one Gaussian per binding face (the paper); "area" = ``num_gaussians`` in
+    total, at least one per face, the rest given out by triangle area (Anny's faces differ ~100x in
+    size), placed uniformly inside their triangle. ``body``/``gender`` name the body model the avatar is
+    bound to (None: the dataset's own preset and gender)."""
+
+    body: str | None = None  # "anny", "anny:PRESET", "smpl:PATH"; None = the dataset's own preset/gender
+    gender: str | None = None  # None = the dataset's gender
     sh_degree: int = 3  # highest SH degree stored (0..3)
     rectifier: bool = True  # False = the paper's "w/o GauRec": Gaussians fixed to their faces
     num_freqs: int = 6
@@ -50,7 +50,6 @@ class AvatarConfig:
     num_gaussians: int | None = None  # total budget for placement="area"
     # The rectified scale s* + d_s is clamped to this (metres): d_s is additive and may overshoot.
     min_scale: float = 1e-6
-    seed: int = 0  # area placement sampling
     # Coarse-to-fine encoding window (HumanNeRF): closed until c2f_start, fully open at c2f_end,
     # both as fractions of the run (set_progress). Our choice; the paper gives no values.
     coarse_to_fine: bool = True
@@ -60,65 +59,31 @@ class AvatarConfig:
     sh_every_frac: float = 0.02
 
     def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> "AvatarConfig":
+        """Raise UserError for values no avatar can use (names are the config.yaml keys); returns self."""
         if not 0 <= self.sh_degree <= 3:
-            raise UserError(f"sh_degree must be 0..3, got {self.sh_degree}")
+            raise UserError(f"model.sh_degree must be 0..3, got {self.sh_degree}")
         if self.placement not in ("face", "area"):
-            raise UserError(f"placement must be 'face' or 'area', got {self.placement!r}")
+            raise UserError(f"model.placement must be 'face' or 'area', not {self.placement!r}")
+        if self.placement == "area" and not self.num_gaussians:
+            raise UserError("model.placement 'area' needs model.num_gaussians (the total Gaussian budget)")
         if not 0.0 < self.init_opacity < 1.0:
-            raise UserError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+            raise UserError(f"model.init_opacity must be in (0, 1), got {self.init_opacity}")
         if self.num_freqs < 1:
-            raise UserError(f"num_freqs must be >= 1, got {self.num_freqs}")
+            raise UserError(f"model.num_freqs must be >= 1, got {self.num_freqs}")
         if self.rectifier_precision not in ("float32", "bfloat16"):
-            raise UserError(f"rectifier_precision must be 'float32' or 'bfloat16', got {self.rectifier_precision!r}")
+            raise UserError(f"model.rectifier_precision must be 'float32' or 'bfloat16', not {self.rectifier_precision!r}")
         self.init_color = tuple(float(c) for c in self.init_color)
         if len(self.init_color) != 3:
-            raise UserError(f"init_color must have 3 values, got {self.init_color}")
+            raise UserError(f"model.init_color must have 3 values, got {self.init_color}")
+        return self
 
-
-@dataclass
-class GaussianSet:
-    """World-space Gaussians ready for ``rmavatar.render.rasterize``.
-
-    means [N,3], quats [N,4] (wxyz, unit), scales [N,3] (linear), opacities [N] in [0,1],
-    sh [N,K,3] with K = (sh_degree+1)^2 (colour = 0.5 + SH evaluation, the gsplat convention),
-    expressed in the axes of ``frames`` [N,3,3] (each Gaussian's face frame, local -> world; None means
-    world axes): render with ``colors(viewmat)``, which evaluates them along each Gaussian's local
-    view direction; ``world_sh()`` gives them in world axes for standard 3DGS files.
-    offsets = (d_mu [N,3], d_s [N,3], d_r [N,4]) of the rectifier, or None without one.
-    local_means [N,3] / local_log_scales [N,3] are the avatar's face-local parameters (for the
-    position and scaling regularisers); face_ids [N] the parent faces.
-    """
-
-    means: torch.Tensor
-    quats: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor
-    sh_degree: int
-    offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-    face_ids: torch.Tensor | None = field(default=None, repr=False)
-    local_means: torch.Tensor | None = field(default=None, repr=False)
-    local_log_scales: torch.Tensor | None = field(default=None, repr=False)
-    frames: torch.Tensor | None = field(default=None, repr=False)
-
-    def __len__(self) -> int:
-        return self.means.shape[0]
-
-    def colors(self, viewmat: torch.Tensor) -> torch.Tensor:
-        """RGB [N,3] seen by the camera ``viewmat`` [4,4] (world -> camera), for ``rasterize``.
-
-        View dependence lives in the face frames, so it turns with the body: a fixed camera watching a
-        turning person shows each surface from many local directions (in world axes it would only ever
-        see one, and every other view would extrapolate)."""
-        from rmavatar.render.project import view_colors
-
-        return view_colors(self.sh, self.sh_degree, self.means, viewmat, self.frames)
-
-    def world_sh(self) -> torch.Tensor:
-        """``sh`` [N,K,3] turned into world axes, as standard 3DGS readers evaluate them (for export)."""
-        if self.frames is None or self.sh_degree == 0:
-            return self.sh
-        return rotate_sh(self.sh, sh_rotation_matrices(self.frames, self.sh_degree))
+    def build(self, body, seed: int = 0, init_colors=None) -> "Avatar":
+        """The avatar on ``body`` (a BodyModel: its faces, binding_faces, v_template); ``seed`` draws the
+        in-triangle positions of area placement; ``init_colors`` [3] or [F,3] per face."""
+        return Avatar(body.faces, getattr(body, "binding_faces", None), body.v_template, self, init_colors, seed=seed)
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -145,8 +110,8 @@ def area_counts(areas: torch.Tensor, total: int) -> torch.Tensor:
 class Avatar(nn.Module):
     """Gaussians embedded in the triangles of a body mesh, plus the rectification MLP.
 
-    Build with ``Avatar.from_body(body, config)`` or ``Avatar(faces, binding_faces, v_template,
-    config)``. ``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``.
+    Build with ``AvatarConfig.build(body)`` or ``Avatar(faces, binding_faces, v_template, config)``.
+    ``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``.
 
     Parameters (per Gaussian, names in GAUSSIAN_PARAMS; all in the parent triangle's frame):
     means [N,3] (units of w), quats [N,4] wxyz (unnormalised), log_scales [N,3], opacity_logits [N],
@@ -163,9 +128,10 @@ class Avatar(nn.Module):
         v_template: torch.Tensor,
         config: AvatarConfig | None = None,
         init_colors: torch.Tensor | None = None,
+        seed: int = 0,
     ):
         super().__init__()
-        config = config or AvatarConfig()
+        config = (config or AvatarConfig()).validate()
         self.config = config
         faces = torch.as_tensor(faces, dtype=torch.long)
         v_template = torch.as_tensor(v_template, dtype=torch.float32)
@@ -187,7 +153,7 @@ class Avatar(nn.Module):
         self.register_buffer("rest_extent", 0.5 * torch.linalg.vector_norm(v_template.amax(0) - v_template.amin(0)))
         self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
 
-        face_ids, means, log_scales = self._initial_layout(v_template, config)
+        face_ids, means, log_scales = self._initial_layout(v_template, config, seed)
         n = face_ids.shape[0]
         k = (config.sh_degree + 1) ** 2
         colors = self._initial_colors(init_colors, face_ids, faces.shape[0])
@@ -202,11 +168,6 @@ class Avatar(nn.Module):
         self.rectifier = Rectifier(config.num_freqs, config.hidden, precision=config.rectifier_precision) if config.rectifier else None
 
     # ------------------------------------------------------------------ construction
-    @classmethod
-    def from_body(cls, body, config: AvatarConfig | None = None, init_colors=None) -> "Avatar":
-        """Build from a ``rmavatar.body.BodyModel`` (its faces, binding_faces, v_template)."""
-        return cls(body.faces, getattr(body, "binding_faces", None), body.v_template, config, init_colors)
-
     def checkpoint_state(self) -> dict:
         """Everything needed to rebuild this avatar: {"config": dict, "state_dict": tensors}."""
         return {"config": dataclasses.asdict(self.config), "state_dict": self.state_dict()}
@@ -235,18 +196,16 @@ class Avatar(nn.Module):
             raise UserError(f"{where}: the avatar state does not fit this body model: {exc}") from None
         return avatar
 
-    def _initial_layout(self, v_template, config):
+    def _initial_layout(self, v_template, config, seed):
         bf = self.binding_faces
         if config.placement == "face":
             face_ids = bf.clone()
             means = torch.zeros(bf.shape[0], 3)
             log_scales = torch.zeros(bf.shape[0], 3)
             return face_ids, means, log_scales
-        if config.num_gaussians is None:
-            raise UserError("placement='area' needs num_gaussians (the total Gaussian budget)")
         counts = area_counts(_triangle_areas(v_template, self.faces[bf]), int(config.num_gaussians))
         face_ids = torch.repeat_interleave(bf, counts)
-        gen = torch.Generator().manual_seed(config.seed)
+        gen = torch.Generator().manual_seed(seed)
         # Uniform points in the triangle (square-root barycentric sampling), then to local coordinates.
         u = torch.rand(face_ids.shape[0], 2, generator=gen)
         su = u[:, 0].sqrt()
@@ -278,19 +237,6 @@ class Avatar(nn.Module):
     def num_gaussians(self) -> int:
         return self.means.shape[0]
 
-    @property
-    def max_sh_degree(self) -> int:
-        return self.config.sh_degree
-
-    def gaussian_parameters(self) -> dict[str, nn.Parameter]:
-        """The per-Gaussian parameters by name (what density control resizes)."""
-        return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
-
-    def increase_sh_degree(self) -> None:
-        """Activate one more SH band (3DGS does this every 1000 iterations), up to the stored degree."""
-        if int(self.active_sh_degree) < self.config.sh_degree:
-            self.active_sh_degree += 1
-
     def set_frequency_alpha(self, alpha: float) -> None:
         """Coarse-to-fine encoding window position (0..num_freqs); see rectifier.window_alpha."""
         if self.rectifier is not None:
@@ -308,10 +254,6 @@ class Avatar(nn.Module):
             self.set_frequency_alpha(self.config.num_freqs)
 
     # ------------------------------------------------------------------ posing
-    def local_scales(self) -> torch.Tensor:
-        """exp(log_scale) [N,3]: scales in units of the parent triangle's w."""
-        return torch.exp(self.log_scales)
-
     def posed(self, vertices: torch.Tensor):
         """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3]."""
         return self._posed(vertices)[:3]

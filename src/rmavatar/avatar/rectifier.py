@@ -1,4 +1,4 @@
-"""The Gaussian rectification MLP F_theta(gamma(mu*), P) -> (d_mu, d_s, d_r) (paper §3.3, SPEC §2).
+"""The Gaussian rectification MLP F_theta(gamma(mu*), P) -> (d_mu, d_s, d_r) (paper §3.3; docs/model.md).
 
 Layers (ReLU between): [gamma 36 | pose 69] = 105 -> 128 -> 128 -> [+gamma: 164] -> 128 -> 128 -> 10.
 The pose is the same for every Gaussian of a frame, so its part of the first layer is one
@@ -134,10 +134,6 @@ class Rectifier(nn.Module):
         nn.init.zeros_(self.l5.bias)
         # Window position of the coarse-to-fine encoding; a buffer so checkpoints keep it.
         self.register_buffer("freq_alpha", torch.tensor(float(num_freqs)))
-
-    @property
-    def layer_widths(self) -> list[tuple[int, int]]:
-        return [(m.in_features, m.out_features) for m in (self.l1, self.l2, self.l3, self.l4, self.l5)]
 
     def set_frequency_alpha(self, alpha: float) -> None:
         self.freq_alpha.fill_(float(alpha))

@@ -1,1 +1,1 @@
-"""Benchmarks behind ``rmavatar bench NAME`` (see ``rmavatar.bench.cli``)."""
+"""Benchmarks behind ``rmavatar bench NAME`` (options: ``rmavatar.commands.bench``)."""

@@ -107,29 +107,6 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = """examples:
-  rmavatar bench quality --json bench_quality.json              # CPU budget: 256px, 1000 iterations
-  rmavatar bench quality --iters 50000 --size 1080 --device cuda --data peoplesnapshot:DIR --json q.json
-  rmavatar bench quality --variants full no_rectifier --iters 300 --size 128
-"""
-    parser.add_argument("--json", metavar="FILE", help="write the results to this JSON file")
-    parser.add_argument("--work", type=Path, default=Path("bench_quality_runs"),
-                        help="folder for the dataset and the runs (default bench_quality_runs; reused on rerun)")
-    parser.add_argument("--data", default=None, help="dataset (default: the synthetic subject of --seed)")
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS, metavar="V",
-                        help=f"which variants (default all: {' '.join(VARIANTS)})")
-    parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
-    parser.add_argument("--iters", type=int, default=1000, help="iterations per variant (default 1000)")
-    parser.add_argument("--seed", type=int, default=0, help="subject and training seed (default 0)")
-    parser.add_argument("--max-gaussians", type=int, default=40_000,
-                        help="densification cap (default 40000, as the demo; 0 = none)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
-    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu or cuda")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
 def run(args: argparse.Namespace) -> int:
     if args.json:  # fail now, not after an hour of training, if the result cannot be written
         check_writable_folder(Path(args.json).resolve(), f"--json {args.json}")

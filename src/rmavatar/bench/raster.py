@@ -20,24 +20,6 @@ DEFAULT_CONFIGS = ("10000x256", "10000x512", "50000x256", "50000x512")
 REFERENCE_CONFIG = "1000x64"
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
-    parser.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), metavar="NxSIZE",
-                        help="Gaussian count x square image size (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (default 7)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed runs first (default 2)")
-    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"),
-                        help="rasterizer backend (default: auto)")
-    parser.add_argument("--device", default="cpu", help="torch device of the scene (cuda for gsplat)")
-    parser.add_argument("--sh-degree", type=int, default=3, help="SH degree of the colours (default 3)")
-    parser.add_argument("--disc-scale", type=float, default=1.5,
-                        help="Gaussian size as a multiple of the point spacing (default 1.5)")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch and Numba threads (default: their defaults, one per core)")
-    parser.add_argument("--no-reference", action="store_true", help="skip the dense reference comparison")
-    parser.epilog = "Example: rmavatar bench raster --json bench_raster.json"
-
-
 def _parse_config(text: str) -> tuple[int, int]:
     from rmavatar.utils import UserError
 

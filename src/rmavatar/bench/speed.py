@@ -32,34 +32,6 @@ from contextlib import nullcontext
 from pathlib import Path
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
-    parser.add_argument("--size", type=int, default=256,
-                        help="image size of the rasterizer and training-step measurements (default 256)")
-    parser.add_argument("--gaussians", type=int, default=25_000,
-                        help="Gaussian count of the rasterizer scene (default 25000)")
-    parser.add_argument("--avatar-gaussians", type=int, default=None,
-                        help="Gaussian count of the avatar in the training step and rendering, placed by area "
-                             "(at least one per binding face; default: one per binding face, 24864 for Anny)")
-    parser.add_argument("--render-sizes", type=int, nargs="+", default=[256, 512], metavar="SIZE",
-                        help="image sizes of the rendering throughput (default: 256 512)")
-    parser.add_argument("--raster-reference", default="1000x64", metavar="NxSIZE",
-                        help="configuration of the dense reference rasterizer (default 1000x64)")
-    parser.add_argument("--render-reference-size", type=int, default=32,
-                        help="image size of the dense-reference rendering pipeline, with all Gaussians "
-                             "(default 32)")
-    parser.add_argument("--repeats", type=int, default=9, help="timed repeats per measurement (default 9)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed runs first (default 3)")
-    parser.add_argument("--steps", type=int, default=15, help="timed training steps per variant (default 15)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and Numba threads (default 2)")
-    parser.add_argument("--data", metavar="DATA",
-                        help="dataset for the training step and the avatar's poses (default: a small "
-                             "synthetic subject made in a temporary folder)")
-    parser.add_argument("--run", metavar="RUN",
-                        help="render this trained run's avatar (default: a freshly initialised avatar)")
-    parser.epilog = "Example: rmavatar bench speed --json bench_speed.json"
-
-
 def _ratio(reference_s: float, ours_s: float) -> float:
     return reference_s / ours_s
 
@@ -157,49 +129,48 @@ def bench_training_step(data: str, size: int, steps: int, warmup: int, threads: 
 
 
 # ----------------------------------------------------------------------------------------------- rendering
-def _poser(data: str, run: str | None, gaussians: int | None):
-    from types import SimpleNamespace
-
-    from rmavatar.animate.drive import Poser
+def _trained(data: str, run: str | None, gaussians: int | None):
+    """The avatar to render: a trained run's, or a freshly initialised one on the dataset's body."""
+    from rmavatar.avatar import TrainedAvatar, load_trained
+    from rmavatar.avatar.trained import training_betas
 
     if run is not None:
-        from rmavatar.train import load_run
-
-        return Poser.from_run(load_run(run)), "trained run " + str(run)
+        return load_trained(run), "trained run " + str(run)
     from rmavatar.body import load_body_model
     from rmavatar.data import load_dataset
     from rmavatar.train.config import TrainConfig
-    from rmavatar.train.trainer import build_avatar, resolve_body
+    from rmavatar.train.trainer import resolve_body
 
     cfg = TrainConfig()
     if gaussians:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
-    spec, gender = resolve_body(cfg, load_dataset(data))
+    dataset = load_dataset(data)
+    spec, gender = resolve_body(cfg, dataset)
     body = load_body_model(spec, gender=gender)
-    avatar = build_avatar(body, cfg).eval()
+    avatar = cfg.model.build(body, seed=cfg.seed).eval()
+    betas = training_betas(dataset.params("train")) if body.num_betas > 0 else None
     desc = f"freshly initialised (untrained) avatar on {spec}, {avatar.num_gaussians} Gaussians"
-    return Poser.from_run(SimpleNamespace(avatar=avatar, body=body, data_spec=data)), desc
+    return TrainedAvatar(avatar, body, betas, iteration=0, data_spec=data, size=None, config={}), desc
 
 
-def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: int, warmup: int) -> dict:
+def bench_rendering(trained, data: str, sizes: list[int], ref_size: int, repeats: int, warmup: int) -> dict:
     """Frames per second of pose -> image for the training poses of ``data``, each frame in front of a
     camera framing the body (as ``rmavatar animate`` shoots it)."""
-    import numpy as np
     import torch
 
     from rmavatar.animate.camera import intrinsics, preset_viewmat
     from rmavatar.animate.jobs import VideoOptions, frame_the_body
-    from rmavatar.animate.motion import PoseSequence, recenter_motion
+    from rmavatar.animate.motion import recenter_motion
     from rmavatar.bench.timing import Clock
+    from rmavatar.body import PoseSequence
     from rmavatar.data import load_dataset
     from rmavatar.render import rasterize
     from rmavatar.render.reference import reference_rasterize
 
     params = load_dataset(data).params("train")
-    seq = PoseSequence(*(torch.as_tensor(np.asarray(params[k]), dtype=torch.float32)
-                         for k in ("global_orient", "body_pose", "transl")))
-    seq = recenter_motion(seq, poser.root_rest())
-    center, distance = frame_the_body(poser.vertices(seq), VideoOptions())
+    seq = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    seq = recenter_motion(seq, trained.root_rest())
+    center, distance = frame_the_body(trained.vertices(seq), VideoOptions())
     view = preset_viewmat("front", center, distance)
 
     def fps(raster, size, reps, warm):
@@ -213,9 +184,9 @@ def bench_rendering(poser, data: str, sizes: list[int], ref_size: int, repeats: 
             timed = k >= warm
             with torch.no_grad(), (frame_clock if timed else nullcontext()):
                 with stages["body_forward"] if timed else nullcontext():
-                    vertices = poser.vertices(one)[0]
+                    vertices = trained.vertices(one)[0]
                 with stages["gaussians"] if timed else nullcontext():  # mesh embedding + rectifier
-                    gs = poser.gaussians(vertices, one.body_pose[0])
+                    gs = trained.gaussians(vertices, one.body_pose[0])
                 with stages["rasterize"] if timed else nullcontext():
                     raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view, K, size, size,
                            background=bg)
@@ -302,8 +273,6 @@ def _print(report: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    # Idle OpenMP threads sleep instead of spinning (before torch loads; see bench step).
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     ref_n, ref_size = _check(args)
 
     from rmavatar.bench.step import synthetic_subject
@@ -325,11 +294,11 @@ def run(args: argparse.Namespace) -> int:
         set_threads(args.threads)
         print(f"rendering at {', '.join(map(str, args.render_sizes))} vs dense reference at "
               f"{args.render_reference_size} ...", flush=True)
-        poser, avatar_desc = _poser(data, args.run, args.avatar_gaussians)
-        render = bench_rendering(poser, data, args.render_sizes, args.render_reference_size, args.repeats,
+        trained, avatar_desc = _trained(data, args.run, args.avatar_gaussians)
+        render = bench_rendering(trained, data, args.render_sizes, args.render_reference_size, args.repeats,
                                  args.warmup)
         render["avatar"] = avatar_desc
-        render["gaussians"] = int(poser.avatar.num_gaussians)
+        render["gaussians"] = int(trained.avatar.num_gaussians)
     machine = machine_info()
     machine["load_average_start"] = load_start
     machine["load_average_end"] = machine.pop("load_average")

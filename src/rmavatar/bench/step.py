@@ -26,21 +26,6 @@ from pathlib import Path
 from rmavatar.bench.timing import Clock, median_time
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
-    parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
-    parser.add_argument("--data", metavar="DATA",
-                        help="dataset to use (default: a small synthetic subject made in a temporary folder)")
-    parser.add_argument("--gaussians", type=int, default=None,
-                        help="Gaussian count (placement by area; default: one per binding face, ~25k for Anny)")
-    parser.add_argument("--steps", type=int, default=15, help="timed training steps (default 15)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU path)")
-    parser.add_argument("--no-rectifier", action="store_true", help="time the 'w/o GauRec' model")
-    parser.epilog = "Example: rmavatar bench step --json bench_step.json"
-
-
 def _stages(trainer, repeats: int, sync) -> dict:
     """Each stage of a step timed alone on frame 0's inputs (seconds, medians)."""
     import torch
@@ -55,7 +40,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
            for k in ("betas", "global_orient", "body_pose", "transl")}
     verts, pose = trainer.vertices[i], trainer.body_pose[i]
     bg = torch.ones(3, device=dev)
-    target = trainer._frame_target(i, bg)
+    target = trainer.target(i, bg)
     out = {}
 
     with torch.no_grad():
@@ -129,7 +114,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     import torch
 
     from rmavatar.train.config import TrainConfig
-    from rmavatar.train.trainer import _Trainer, normalize_data_spec
+    from rmavatar.train.trainer import Trainer, normalize_data_spec
 
     cfg = TrainConfig()
     cfg.threads = threads
@@ -141,9 +126,9 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
     cfg.log.tensorboard = False
     with tempfile.TemporaryDirectory() as run:
-        trainer = _Trainer(cfg, Path(run), None, progress=False)
+        trainer = Trainer(cfg, Path(run), progress=False)
         t0 = time.perf_counter()
-        trainer._setup()
+        trainer.setup()
         setup_s = time.perf_counter() - t0
         if prepare is not None:
             prepare(trainer)
@@ -205,11 +190,6 @@ def synthetic_subject(folder: Path, size: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    # Idle OpenMP threads sleep instead of spinning (must be set before torch loads; the environment
-    # wins). On a busy machine spinning 2-thread steps wait on descheduled partners: measured 1.9 s vs
-    # 0.52 s per step at 64x64 under load 8; passive waiting brings 2 threads back to 0.50 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
     from rmavatar.utils import UserError
 
     if args.steps < 1 or args.warmup < 0:

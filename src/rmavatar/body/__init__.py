@@ -8,12 +8,14 @@ from __future__ import annotations
 
 from rmavatar.body.base import SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, BodyOutput
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
-from rmavatar.body.motion import Motion, load_motion
+from rmavatar.body.motion import Motion, load_motion, motion_to_sequence
+from rmavatar.body.poses import PoseSequence, posed_vertices, rest_pose
 from rmavatar.utils import UserError
 
 __all__ = [
-    "BodyModel", "BodyOutput", "Motion", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "axis_angle_to_matrix",
-    "global_rotations", "lbs", "load_body_model", "load_motion",
+    "BodyModel", "BodyOutput", "Motion", "PoseSequence", "SMPL_JOINT_NAMES", "SMPL_PARENTS",
+    "axis_angle_to_matrix", "global_rotations", "lbs", "load_body_model", "load_motion", "motion_to_sequence",
+    "posed_vertices", "rest_pose",
 ]  # fmt: skip
 
 _GENDERS = ("neutral", "male", "female")

@@ -8,7 +8,7 @@ Attributes of :class:`AnnyBody` beyond the :class:`~rmavatar.body.base.BodyModel
 
 - ``uv [T,2]`` texture coordinates and ``face_uv_index [F,3]`` (per face corner, index into ``uv``);
 - ``face_part [F]`` LongTensor, index into ``part_names`` (``body``, ``head``, ``hand.L`` ...,
-  ``eye_cavity.L``, ``mouth_cavity``, ``tongue``); ``face_parts`` dict name -> face indices;
+  ``eye_cavity.L``, ``mouth_cavity``, ``tongue``);
 - ``bone_names`` (104 Anny bones), ``bone_parents``, ``rest_vertices`` / ``rest_heads`` (Anny's A-pose
   rest in our frame), ``skin_weights [V,104]``;
 - ``preset`` and ``phenotype`` (Anny phenotype values of the preset).
@@ -35,7 +35,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rmavatar.body.base import SMPL_PARENTS, SMPL_REST_JOINTS, BodyModel, BodyOutput, check_pose_inputs
+from rmavatar.body.base import (
+    SMPL_PARENTS,
+    SMPL_REST_JOINTS,
+    BodyModel,
+    BodyOutput,
+    check_pose_inputs,
+)
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
 from rmavatar.utils import UserError, atomic_path, cache_dir
 
@@ -271,11 +277,6 @@ class AnnyBody(BodyModel):
             zero = torch.zeros(1, 3)
             canonical = self.forward(None, zero, torch.zeros(1, 69), zero).vertices[0]
         self.register_buffer("v_template", canonical, persistent=False)
-
-    @property
-    def face_parts(self) -> dict[str, torch.Tensor]:
-        """Part name -> LongTensor of face indices (on the body's device)."""
-        return {n: torch.nonzero(self.face_part == i)[:, 0] for i, n in enumerate(self.part_names)}
 
     def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor) -> torch.Tensor:
         """Retarget SMPL axis-angle pose to Anny's local bone rotations ``[B,104,3,3]`` (our frame)."""

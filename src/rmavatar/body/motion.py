@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rmavatar.body.poses import PoseSequence
 from rmavatar.utils import UserError
 
 
@@ -113,3 +114,29 @@ def _z_up_to_y_up(poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.
     poses[:, :3] = (turn * Rotation.from_rotvec(poses[:, :3])).as_rotvec()
     J0 = SMPL_REST_JOINTS[0]
     return poses, turn.apply(trans + J0) - J0
+
+
+def motion_to_sequence(motion, source: str = "motion") -> PoseSequence:
+    """Check a loaded ``Motion``'s arrays and return them as a :class:`PoseSequence`.
+
+    ``source`` names the file in error messages.
+    """
+    arrays = {}
+    for name, width in (("global_orient", 3), ("body_pose", 69), ("transl", 3)):
+        a = getattr(motion, name, None)
+        if a is None:
+            raise UserError(f"{source}: motion has no {name}")
+        a = np.asarray(a)
+        if a.ndim != 2 or a.shape[1] != width:
+            raise UserError(f"{source}: {name} must have shape (frames, {width}), got {a.shape}")
+        arrays[name] = a
+    counts = {a.shape[0] for a in arrays.values()}
+    if len(counts) != 1:
+        raise UserError(f"{source}: global_orient, body_pose and transl have different frame counts "
+                        f"{[a.shape[0] for a in arrays.values()]}")
+    if counts.pop() == 0:
+        raise UserError(f"{source}: motion has no frames")
+    for name, a in arrays.items():
+        if not np.all(np.isfinite(a)):
+            raise UserError(f"{source}: {name} contains NaN or infinite values")
+    return PoseSequence.from_arrays(arrays["global_orient"], arrays["body_pose"], arrays["transl"])

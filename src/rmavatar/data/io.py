@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 from PIL import Image
@@ -108,3 +109,18 @@ def to_uint8(arr: np.ndarray, what: str) -> np.ndarray:
 def write_png(path: Path, arr: np.ndarray) -> None:
     """Write [H,W] or [H,W,3] uint8 as PNG (fast compression: datasets are large)."""
     Image.fromarray(arr).save(path, format="PNG", compress_level=3)
+
+
+def load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file (no pickles); UserError naming the file when it is missing, unreadable or lacks ``keys``."""
+    if not path.is_file():
+        raise UserError(f"{path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise UserError(f"cannot read {path}: {exc}") from None
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise UserError(f"{path} is missing {missing} (it has {sorted(data)})")
+    return data

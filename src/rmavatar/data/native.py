@@ -20,14 +20,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 import yaml
 
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
-from rmavatar.data.frame import Camera
-from rmavatar.data.io import to_uint8, write_png
+from rmavatar.data.io import load_npz, to_uint8, write_png
+from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError, atomic_dir
 
 FORMAT = "rmavatar-native"
@@ -238,20 +238,6 @@ def _plain(value):
     return value
 
 
-def _load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise UserError(f"{path} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:
-        raise UserError(f"cannot read {path}: {exc}") from None
-    missing = [k for k in keys if k not in data]
-    if missing:
-        raise UserError(f"{path} is missing {missing} (it has {sorted(data)})")
-    return data
-
-
 def read_meta(root: Path) -> dict:
     path = root / "meta.yaml"
     try:
@@ -286,12 +272,12 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
     n = int(doc["num_frames"])
     width, height = int(doc["width"]), int(doc["height"])
     splits = _check_splits(doc["splits"], n, str(root / "meta.yaml"))
-    cam = _load_npz(root / "cameras.npz", ("K", "viewmat"))
+    cam = load_npz(root / "cameras.npz", ("K", "viewmat"))
     try:
         K, V, _ = _stack_cameras({"K": cam["K"], "viewmat": cam["viewmat"]}, n)
     except UserError as exc:
         raise UserError(f"{root / 'cameras.npz'}: {exc}") from None
-    p = _check_params(_load_npz(root / "smpl.npz", PARAM_KEYS), str(root / "smpl.npz"))
+    p = _check_params(load_npz(root / "smpl.npz", PARAM_KEYS), str(root / "smpl.npz"))
     if p["global_orient"].shape[0] != n:
         raise UserError(f"{root / 'smpl.npz'} has {p['global_orient'].shape[0]} frames, "
                         f"meta.yaml says {n}")

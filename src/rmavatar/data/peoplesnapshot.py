@@ -17,8 +17,8 @@ import numpy as np
 import yaml
 
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
-from rmavatar.data.frame import Camera
-from rmavatar.data.native import _load_npz
+from rmavatar.data.io import load_npz
+from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
 
 # subject -> (gender, {split: (start, end inclusive, step)}), the InstantAvatar / peers' standard splits.
@@ -70,7 +70,7 @@ def _split_params(root: Path, split: str, frames: list[int]) -> dict[str, np.nda
     """The SMPL parameters of a split's frames: its anim_nerf file, else rows of poses.npz."""
     path = root / "poses" / f"anim_nerf_{split}.npz"
     if path.is_file():
-        z = _load_npz(path, ("betas", "global_orient", "body_pose", "transl"))
+        z = load_npz(path, ("betas", "global_orient", "body_pose", "transl"))
         n = len(frames)
         for key, width in (("global_orient", 3), ("body_pose", 69), ("transl", 3)):
             if z[key].ndim != 2 or z[key].shape[1] != width:
@@ -87,7 +87,7 @@ def _split_params(root: Path, split: str, frames: list[int]) -> dict[str, np.nda
     if not path.is_file():
         raise UserError(f"split '{split}' has no poses: neither {root / 'poses' / f'anim_nerf_{split}.npz'} "
                         f"nor {path} exists")
-    z = _load_npz(path, ("betas", "thetas", "transl"))
+    z = load_npz(path, ("betas", "thetas", "transl"))
     total = z["thetas"].shape[0]
     if z["thetas"].ndim != 2 or z["thetas"].shape[1] != 72 or z["transl"].shape != (total, 3):
         raise UserError(f"{path}: thetas must be [N,72] and transl [N,3], got "
@@ -103,13 +103,13 @@ def _split_params(root: Path, split: str, frames: list[int]) -> dict[str, np.nda
 
 
 def _standard_frames(root: Path, split: str, rng: tuple[int, int, int]) -> list[int]:
-    """A standard split's frames, end inclusive as SPEC's table gives them; when the split's anim_nerf
+    """A standard split's frames, end inclusive as the standard table (docs/data.md) gives them; when the split's anim_nerf
     file has exactly the count of the end-exclusive reading (Python slicing, as in InstantAvatar's
     loader), that reading is taken, with a warning."""
     frames = split_frames(*rng)
     path = root / "poses" / f"anim_nerf_{split}.npz"
     if path.is_file():
-        n = _load_npz(path, ("global_orient",))["global_orient"].shape[0]
+        n = load_npz(path, ("global_orient",))["global_orient"].shape[0]
         exclusive = list(range(*rng))
         if n != len(frames) and n == len(exclusive) and exclusive:
             warn(f"{path} has {n} poses: taking split '{split}' as frames {rng[0]}..{rng[1]} "
@@ -119,7 +119,7 @@ def _standard_frames(root: Path, split: str, rng: tuple[int, int, int]) -> list[
 
 
 def read_cameras_npz(path: Path) -> Camera:
-    z = _load_npz(path, ("intrinsic", "extrinsic", "height", "width"))
+    z = load_npz(path, ("intrinsic", "extrinsic", "height", "width"))
     K, E = np.asarray(z["intrinsic"]), np.asarray(z["extrinsic"])
     if K.shape != (3, 3) or E.shape not in ((4, 4), (3, 4)):
         raise UserError(f"{path}: intrinsic must be [3,3] and extrinsic [4,4], got {list(K.shape)} "
@@ -158,7 +158,7 @@ def open_peoplesnapshot(root: Path, size=None, cache_mb: float = 1024.0, **optio
             for split in SPLITS:
                 path = root / "poses" / f"anim_nerf_{split}.npz"
                 if path.is_file():
-                    n = _load_npz(path, ("global_orient",))["global_orient"].shape[0]
+                    n = load_npz(path, ("global_orient",))["global_orient"].shape[0]
                     if n != len(all_frames):
                         raise UserError(
                             f"{path} has {n} poses and {root / 'images'} {len(all_frames)} images; "

@@ -19,8 +19,8 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
-from rmavatar.data.frame import Camera
 from rmavatar.data.io import read_binary_mask
+from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
 
 # subject -> (last train frame, last test frame), 1-based as the paper's table gives them (frames

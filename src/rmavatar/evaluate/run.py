@@ -90,10 +90,10 @@ def evaluate_run(
     from PIL import Image
     from tqdm import tqdm
 
+    from rmavatar.avatar.trained import load_trained
+    from rmavatar.body import PoseSequence, posed_vertices
     from rmavatar.data import load_dataset
     from rmavatar.evaluate.metrics import lpips, psnr, ssim
-    from rmavatar.render import rasterize
-    from rmavatar.train import load_run
 
     if bg not in BACKGROUNDS:
         raise UserError(f"background must be one of {', '.join(BACKGROUNDS)}, not {bg!r}")
@@ -106,21 +106,19 @@ def evaluate_run(
         check_images_dir(out_dir)
 
     dev = resolve_device(device)
-    run = load_run(run_dir, device=dev)
+    run = load_trained(run_dir, device=dev)
     spec = data if data is not None else run.data_spec
     if size is None:
-        size = run.config.data.size
+        size = run.size
     dataset = load_dataset(spec, size=size)
     total = dataset.num_frames(split)  # a UserError naming the splits there are when missing
     n = total if max_frames is None else min(total, max_frames)
     params = dataset.params(split)
+    poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
     width, height = dataset.image_size
     if min(width, height) < 32:
         raise UserError(f"images of {width}x{height} are too small to score (LPIPS needs 32x32); pass a larger size")
     background = torch.tensor(BACKGROUNDS[bg], dtype=torch.float32, device=dev)
-
-    def as_tensor(key: str, i: int) -> torch.Tensor:
-        return torch.as_tensor(params[key][i : i + 1], dtype=torch.float32, device=dev)
 
     rows: list[dict[str, Any]] = []
     bar = tqdm(range(n), desc=f"eval {split}", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -129,17 +127,10 @@ def evaluate_run(
         tmp_dir = stack.enter_context(atomic_dir(out_dir)) if out_dir is not None else None
         for i in bar:
             frame = dataset.frame(split, i)
-            verts = run.body(
-                betas=as_tensor("betas", i), global_orient=as_tensor("global_orient", i),
-                body_pose=as_tensor("body_pose", i), transl=as_tensor("transl", i),
-            ).vertices[0].float()
-            gs = run.avatar(verts, as_tensor("body_pose", i)[0])
-            cam = frame.camera
-            viewmat = torch.tensor(cam.viewmat, device=dev)
-            image, _, _ = rasterize(
-                gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(viewmat), viewmat,
-                torch.tensor(cam.K, device=dev), cam.width, cam.height, background=background,
-            )
+            one = poses.select(slice(i, i + 1))
+            verts = posed_vertices(run.body, one, params["betas"][i : i + 1])[0]  # the frame's own shape
+            gs = run.avatar(verts, one.body_pose[0].to(dev))
+            image = run.render(gs, frame.camera, background)
             render = image.clamp(0.0, 1.0)
             mask = torch.tensor(frame.mask, dtype=torch.float32, device=dev)[..., None]
             target = torch.tensor(frame.image, dtype=torch.float32, device=dev) * mask + background * (1 - mask)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from rmavatar.animate.drive import Poser
-from rmavatar.animate.motion import PoseSequence, motion_to_sequence
+from rmavatar.avatar.trained import TrainedAvatar
+from rmavatar.body import PoseSequence, motion_to_sequence
 from rmavatar.export.ply import write_ply
 from rmavatar.utils import UserError, check_writable_folder
 
@@ -21,11 +21,11 @@ def check_ply_output(path: Path) -> Path:
     return path
 
 
-def pose_for_export(poser: Poser, motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
+def pose_for_export(trained: TrainedAvatar, motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
     """One pose: frame ``frame`` of a motion file, else the rest pose ``rest`` at the origin
-    ('tpose', 'apose' or 'train', see :meth:`Poser.rest_pose`)."""
+    ('tpose', 'apose' or 'train', see :meth:`TrainedAvatar.rest_pose`)."""
     if motion_path is None:
-        return poser.rest_pose(rest)
+        return trained.rest_pose(rest)
     from rmavatar.body import load_motion
 
     seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
@@ -36,8 +36,8 @@ def pose_for_export(poser: Poser, motion_path: str | None, frame: int, rest: str
     return seq.select(slice(k, k + 1))
 
 
-def export_ply(poser: Poser, seq: PoseSequence, out: str | os.PathLike) -> int:
+def export_ply(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike) -> int:
     """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count."""
-    gs = poser.gaussians(poser.vertices(seq)[0], seq.body_pose[0])
+    gs = trained.pose(seq, 0)
     write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh())
     return int(gs.means.shape[0])

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError, atomic_path
 
 # Opacities are clamped away from 0 and 1 so that their logits stay finite in float32.
@@ -32,28 +32,6 @@ _PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-
-
-@dataclass
-class PlyGaussians:
-    """Gaussians read from a PLY, in the rasterizer's units.
-
-    means [N,3], quats [N,4] normalised wxyz, scales [N,3] linear, opacities [N] in (0,1),
-    sh [N,K,3] with K = (sh_degree+1)^2, all float32 CPU tensors.
-    """
-
-    means: torch.Tensor
-    quats: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor
-    sh_degree: int
-
-    def colors(self, viewmat: torch.Tensor) -> torch.Tensor:
-        """RGB [N,3] seen by the camera ``viewmat`` [4,4] (the file's SH are in world axes)."""
-        from rmavatar.render.project import view_colors
-
-        return view_colors(self.sh, self.sh_degree, self.means, viewmat)
 
 
 def ply_property_names(num_sh: int) -> list[str]:
@@ -121,7 +99,7 @@ def write_ply(path: str | os.PathLike, means, quats, scales, opacities, sh) -> P
     return path
 
 
-def read_ply(path: str | os.PathLike) -> PlyGaussians:
+def read_ply(path: str | os.PathLike) -> GaussianSet:
     """Read a 3DGS PLY (ours or any 3DGS-layout file: binary either endianness, or ascii)."""
     path = Path(path)
     if not path.is_file():
@@ -154,7 +132,7 @@ def read_ply(path: str | os.PathLike) -> PlyGaussians:
     quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
     logit = np.asarray(data["opacity"], np.float64)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    return PlyGaussians(
+    return GaussianSet(
         means=t(cols(["x", "y", "z"])),
         quats=t(quats),
         scales=t(np.exp(cols(["scale_0", "scale_1", "scale_2"]))),

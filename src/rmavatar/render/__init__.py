@@ -2,8 +2,12 @@
 
 ``rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, background=None,
 sh_degree=None, backend="auto") -> (image [H,W,3], alpha [H,W,1], info)``; see its docstring.
+``GaussianSet`` is the one type for world-space Gaussians; ``render_gaussians(gs, viewmat, K, width,
+height, background)`` draws one with its view-dependent colours.
 """
 
+from rmavatar.render.camera import Camera
+from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.render.rasterize import RasterInputError, rasterize
 
-__all__ = ["rasterize", "RasterInputError"]
+__all__ = ["Camera", "GaussianSet", "RasterInputError", "rasterize", "render_gaussians"]

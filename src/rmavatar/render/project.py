@@ -12,6 +12,7 @@ here, 0.3 px^2 low-pass dilation of the 2D covariance, near plane 0.01, and an o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -167,3 +168,45 @@ def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames:
     if frames is not None:
         dirs = torch.einsum("nji,nj->ni", frames, dirs)  # R^T d
     return sh_to_rgb(sh, degree, dirs, torch.zeros_like(campos))
+
+
+def _sample_dirs(n: int) -> torch.Tensor:
+    """``n`` well-spread unit directions [n,3] (a Fibonacci sphere), float64."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = torch.sqrt(1.0 - z * z)
+    return torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), dim=-1)
+
+
+def sh_rotation_matrices(R: torch.Tensor, degree: int) -> list[torch.Tensor]:
+    """Per-band matrices that carry SH coefficients from a local frame to the world.
+
+    R [F,3,3] rotates local to world. For band l the matrix M_l [F,2l+1,2l+1] satisfies
+    Y_l(R^T d) = Y_l(d) M_l for every direction d (Y_l the band's basis row, gsplat's convention), so
+    coefficients c_local evaluated along local directions equal c_world = M_l c_local evaluated along
+    world directions. Solved exactly by least squares over fixed sample directions (bands are closed
+    under rotation). Returns [M_1, ..., M_degree] (band 0 is invariant).
+    """
+    dirs = _sample_dirs(20)  # one set for every band: the 20x16 basis matrix has full column rank
+    world = sh_basis(degree, dirs)  # [S,K]
+    local_dirs = torch.einsum("fji,sj->fsi", R, dirs.to(R.dtype))  # R^T d for every face
+    local = sh_basis(degree, local_dirs.reshape(-1, 3)).reshape(R.shape[0], dirs.shape[0], -1)  # [F,S,K]
+    mats = []
+    for band in range(1, degree + 1):
+        lo, hi = band * band, (band + 1) ** 2
+        pinv = torch.linalg.pinv(world[:, lo:hi]).to(R.dtype)  # [2l+1,S]
+        mats.append(torch.einsum("ks,fsj->fkj", pinv, local[..., lo:hi]))
+    return mats
+
+
+def rotate_sh(sh: torch.Tensor, mats: list[torch.Tensor]) -> torch.Tensor:
+    """SH coefficients sh [N,K,3] in local frames -> world axes, row i with the band matrices
+    mats[l-1][i] of :func:`sh_rotation_matrices`. Bands beyond len(mats) are not allowed."""
+    degree = math.isqrt(sh.shape[1]) - 1
+    if degree > len(mats):
+        raise ValueError(f"sh has degree {degree} but only {len(mats)} band matrices were given")
+    out = [sh[:, :1]]
+    for band in range(1, degree + 1):
+        out.append(mats[band - 1] @ sh[:, band * band:(band + 1) ** 2])
+    return torch.cat(out, dim=1)

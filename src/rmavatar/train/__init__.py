@@ -1,4 +1,4 @@
-"""Training: config, the loop, checkpoints, and ``load_run`` for the commands that use a trained avatar.
+"""Training: the run's config, the loop (``train`` / ``Trainer``), density control, losses, checkpoints.
 
 Names are imported lazily, so ``rmavatar train`` can configure threading before torch loads.
 """
@@ -8,12 +8,11 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "LoadedRun": "rmavatar.train.checkpoint",
-    "load_run": "rmavatar.train.checkpoint",
     "TrainConfig": "rmavatar.train.config",
     "load_config": "rmavatar.train.config",
     "save_config": "rmavatar.train.config",
     "train": "rmavatar.train.trainer",
+    "Trainer": "rmavatar.train.trainer",
     "TrainResult": "rmavatar.train.trainer",
 }
 

@@ -1,58 +1,30 @@
-"""Run folders and checkpoints: atomic writes, ownership checks, and ``load_run`` for the other commands.
+"""Writing runs: the run folder's ownership checks, atomic checkpoints and the RNG states resuming needs.
 
-A run folder holds::
-
-    RUN/rmavatar-run.json        marker: this folder is an rmavatar run, and of which dataset
-    RUN/config.yaml              the full training config (accepted back with --config)
-    RUN/checkpoints/last.pt      the latest checkpoint (torch.save of plain containers and tensors)
-    RUN/previews/*.png           render | target previews
-    RUN/tb/                      TensorBoard event files
-
-A checkpoint stores the config, the iteration, the body model's spec and a signature of its topology,
-the avatar's state (including the Gaussian count and parent-face ids), the optimiser state, the RNG
-states of torch / numpy / python and the background generator, and the frame sampler's position, so
-``--resume`` continues exactly where the checkpoint was taken.
+The run folder's layout and the checkpoint's content and format version are described, and read, in
+:mod:`rmavatar.avatar.trained`.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import random
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
+from rmavatar.avatar.trained import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    MARKER,
+    checkpoint_path,
+    read_marker,
+)
 from rmavatar.utils import UserError, atomic_path
-
-MARKER = "rmavatar-run.json"
-CHECKPOINT_FORMAT = "rmavatar-checkpoint"
-CHECKPOINT_VERSION = 1
-
-
-def checkpoint_path(run_dir: str | os.PathLike) -> Path:
-    return Path(run_dir) / "checkpoints" / "last.pt"
 
 
 # ----------------------------------------------------------------------------------------------- run folder
-def read_marker(run_dir: str | os.PathLike) -> dict | None:
-    """The run marker's content, or None when the folder has none."""
-    path = Path(run_dir) / MARKER
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path} is not a readable rmavatar run marker: {exc}") from None
-    if not isinstance(data, dict) or data.get("format") != "rmavatar-run":
-        raise UserError(f"{path} is not an rmavatar run marker")
-    return data
-
-
 def _write_marker(run_dir: Path, data_spec: str) -> None:
     with atomic_path(run_dir / MARKER) as tmp:
         tmp.write_text(json.dumps({"format": "rmavatar-run", "version": 1, "data": data_spec}, indent=2))
@@ -124,31 +96,6 @@ def restore_rng(state: dict, background: torch.Generator | None = None) -> None:
         background.set_state(state["background"])
 
 
-# ----------------------------------------------------------------------------------------------- body identity
-def body_signature(body: Any) -> dict:
-    """What makes a checkpoint usable with a body model: its spec and a hash of its topology."""
-    faces = body.faces.detach().cpu().to(torch.int64).contiguous().numpy()
-    return {
-        "spec": str(body.spec),
-        "num_vertices": int(body.v_template.shape[0]),
-        "num_faces": int(faces.shape[0]),
-        "faces_sha1": hashlib.sha1(faces.tobytes()).hexdigest(),
-    }
-
-
-def check_body(saved: dict, body: Any, where: str) -> None:
-    """Raise UserError when ``body`` cannot carry the avatar saved with signature ``saved``."""
-    now = body_signature(body)
-    if (saved["num_vertices"], saved["num_faces"], saved["faces_sha1"]) != (
-        now["num_vertices"], now["num_faces"], now["faces_sha1"]
-    ):
-        raise UserError(
-            f"{where} was trained with body model {saved['spec']!r} ({saved['num_vertices']} vertices, "
-            f"{saved['num_faces']} faces), which is incompatible with {now['spec']!r} "
-            f"({now['num_vertices']} vertices, {now['num_faces']} faces)"
-        )
-
-
 # ----------------------------------------------------------------------------------------------- checkpoint io
 def save_checkpoint(path: str | os.PathLike, payload: dict) -> None:
     """Write ``payload`` (plain containers and tensors) atomically: a kill never leaves a torn file."""
@@ -160,58 +107,3 @@ def save_checkpoint(path: str | os.PathLike, payload: dict) -> None:
             torch.save(payload, fh)
             fh.flush()
             os.fsync(fh.fileno())
-
-
-def read_checkpoint(path: str | os.PathLike) -> dict:
-    """Load a checkpoint written by :func:`save_checkpoint`; anything else raises UserError."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint {path} does not exist")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
-        raise UserError(f"{path} is not a readable rmavatar checkpoint: {exc}") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path} is not an rmavatar checkpoint")
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise UserError(f"{path} has checkpoint version {payload.get('version')}, this rmavatar reads {CHECKPOINT_VERSION}")
-    return payload
-
-
-# ----------------------------------------------------------------------------------------------- load_run
-@dataclass
-class LoadedRun:
-    """A trained avatar ready to render: ``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``."""
-
-    avatar: Any  # rmavatar.avatar.Avatar, in eval mode
-    body: Any  # rmavatar.body.BodyModel the avatar is bound to
-    config: Any  # rmavatar.train.config.TrainConfig
-    iteration: int
-    data_spec: str  # the dataset it was trained on, as accepted by rmavatar.data.load_dataset
-
-
-def load_run(run_dir: str | os.PathLike, device: str | torch.device = "cpu") -> LoadedRun:
-    """Load RUN/checkpoints/last.pt: the avatar, its body model, the config and the iteration."""
-    from rmavatar.body import load_body_model
-    from rmavatar.train.config import TrainConfig, from_dict
-
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise UserError(f"run folder {run_dir} does not exist")
-    if read_marker(run_dir) is None:
-        raise UserError(f"{run_dir} is not an rmavatar run ({MARKER} missing)")
-    path = checkpoint_path(run_dir)
-    if not path.is_file():
-        raise UserError(f"{run_dir} has no checkpoint yet ({path} missing): train it first")
-    payload = read_checkpoint(path)
-    config = from_dict(TrainConfig, payload["config"], where=f"{path}:config")
-    body = load_body_model(payload["body"]["spec"], gender=payload["body"].get("gender"))
-    check_body(payload["body"], body, str(path))
-    from rmavatar.train.trainer import build_avatar
-
-    avatar = build_avatar(body, config, state=payload["avatar"])
-    avatar.eval()
-    return LoadedRun(
-        avatar=avatar.to(device), body=body.to(device), config=config,
-        iteration=int(payload["iteration"]), data_spec=str(payload["data_spec"]),
-    )

@@ -1,4 +1,4 @@
-"""Adaptive density control of mesh-embedded Gaussians (paper §3.2, SPEC §2; 3DGS's rules on a mesh).
+"""Adaptive density control of mesh-embedded Gaussians (paper §3.2; 3DGS's rules on a mesh, docs/model.md).
 
 - Statistics: per visible Gaussian, the norm of the view-space positional gradient
   ``info["means2d"].grad`` converted from pixels to NDC-like units (x W/2, y H/2, as gsplat's default
@@ -27,11 +27,9 @@ from torch import nn
 from rmavatar.avatar.geometry import quat_rotate
 from rmavatar.avatar.model import GAUSSIAN_PARAMS
 
-PAPER_ITERS = 50_000
-
 
 # ------------------------------------------------------------------------------------------ schedule
-@dataclass
+@dataclass(frozen=True)
 class DensitySchedule:
     """When to densify/prune and reset opacities (iterations are 1-based, counted after the step).
 
@@ -39,34 +37,11 @@ class DensitySchedule:
     reset_start + reset_every, ... while < stop; gradient statistics gathered while < stop.
     """
 
-    start: int = 10_000
-    every: int = 500
-    stop: int = 35_000
-    reset_start: int = 10_000
-    reset_every: int = 5_000
-
-    @classmethod
-    def scaled(
-        cls,
-        iters: int,
-        reference_iters: int = PAPER_ITERS,
-        start: int = 10_000,
-        every: int = 500,
-        stop: int = 35_000,
-        reset_start: int = 10_000,
-        reset_every: int = 5_000,
-    ) -> "DensitySchedule":
-        """The schedule given for ``reference_iters`` (the paper's 50k by default) stretched to a run of
-        ``iters``, so a short run keeps the paper's proportions (e.g. 2,000 iterations: densify every 20
-        from 400 to 1,400, reset every 200)."""
-        f = iters / reference_iters
-        return cls(
-            start=max(1, round(start * f)),
-            every=max(1, round(every * f)),
-            stop=max(1, round(stop * f)),
-            reset_start=max(1, round(reset_start * f)),
-            reset_every=max(1, round(reset_every * f)),
-        )
+    start: int
+    every: int
+    stop: int
+    reset_start: int
+    reset_every: int
 
     def gather_at(self, it: int) -> bool:
         return it < self.stop
@@ -76,6 +51,37 @@ class DensitySchedule:
 
     def reset_at(self, it: int) -> bool:
         return self.reset_start <= it < self.stop and (it - self.reset_start) % self.reset_every == 0
+
+
+@dataclass
+class DensityConfig:
+    """Mesh-bound density control: the paper's schedule, stated for ``reference_iters`` iterations and
+    stretched to the run's length (:meth:`schedule`), and the 3DGS thresholds. ``build`` makes the
+    controller."""
+
+    enabled: bool = True
+    reference_iters: int = 50_000  # the schedule below is scaled by iters / reference_iters
+    start: int = 10_000
+    every: int = 500
+    stop: int = 35_000
+    reset_every: int = 5_000
+    reset_start: int = 10_000
+    grad_threshold: float = 2e-4  # view-space position-gradient norm (3DGS rule)
+    prune_opacity: float = 0.005
+    percent_dense: float = 0.01  # clone if largest rest-pose scale <= this x the body's extent, else split
+    reset_opacity_to: float = 0.01  # opacity resets cap every opacity at this (3DGS)
+    max_gaussians: int = 0  # 0 = unlimited
+
+    def schedule(self, iters: int) -> DensitySchedule:
+        """The schedule for a run of ``iters`` iterations, keeping the paper's proportions (e.g. 2,000
+        iterations: densify every 20 from 400 to 1,400, reset every 200)."""
+        f = iters / self.reference_iters
+        return DensitySchedule(*(max(1, round(v * f)) for v in (
+            self.start, self.every, self.stop, self.reset_start, self.reset_every)))
+
+    def build(self, avatar, optimizer: torch.optim.Optimizer | None, iters: int, seed: int = 0) -> "DensityController":
+        """The controller for ``avatar`` (its changes mirrored in ``optimizer``) over a run of ``iters``."""
+        return DensityController(avatar, optimizer, self, iters, seed)
 
 
 # ------------------------------------------------------------------------------------------ surgery
@@ -228,28 +234,12 @@ class DensityController:
     rasterizer's info (``info["means2d"].grad`` must have been filled by backward).
     """
 
-    def __init__(
-        self,
-        avatar,
-        optimizer: torch.optim.Optimizer | None,
-        schedule: DensitySchedule,
-        grad_threshold: float = 2e-4,
-        prune_opacity: float = 0.005,
-        percent_dense: float = 0.01,
-        reset_opacity_to: float = 0.01,
-        max_gaussians: int = 0,
-        enabled: bool = True,
-        seed: int = 0,
-    ):
+    def __init__(self, avatar, optimizer: torch.optim.Optimizer | None, config: DensityConfig, iters: int,
+                 seed: int = 0):
         self.avatar = avatar
         self.optimizer = optimizer
-        self.schedule = schedule
-        self.grad_threshold = grad_threshold
-        self.prune_opacity = prune_opacity
-        self.percent_dense = percent_dense
-        self.reset_opacity_to = reset_opacity_to
-        self.max_gaussians = max_gaussians
-        self.enabled = enabled
+        self.config = config
+        self.schedule = config.schedule(iters)
         self.generator = torch.Generator(device=avatar.means.device).manual_seed(seed)
         self._zero_stats()
 
@@ -283,23 +273,24 @@ class DensityController:
     def after_step(self, iteration: int, info: dict, width: int, height: int) -> dict:
         """Returns what happened: {"cloned", "split", "pruned", "reset"} (only the keys that apply)."""
         out: dict = {}
-        if not self.enabled:
+        if not self.config.enabled:
             return out
         if self.schedule.gather_at(iteration):
             self.accumulate(info, width, height)
         if self.schedule.densify_at(iteration):
             out.update(self.densify_and_prune())
         if self.schedule.reset_at(iteration):
-            reset_opacity(self.avatar, self.optimizer, self.reset_opacity_to)
+            reset_opacity(self.avatar, self.optimizer, self.config.reset_opacity_to)
             out["reset"] = True
         return out
 
     def densify_and_prune(self) -> dict:
+        c = self.config
         cloned, split = densify(
-            self.avatar, self.optimizer, self.grad_average(), self.grad_threshold, self.percent_dense,
-            max_gaussians=self.max_gaussians, generator=self.generator,
+            self.avatar, self.optimizer, self.grad_average(), c.grad_threshold, c.percent_dense,
+            max_gaussians=c.max_gaussians, generator=self.generator,
         )
-        pruned = prune(self.avatar, self.optimizer, self.prune_opacity)
+        pruned = prune(self.avatar, self.optimizer, c.prune_opacity)
         self._zero_stats()
         return {"cloned": cloned, "split": split, "pruned": pruned}
 

@@ -1,4 +1,4 @@
-"""RMAvatar's training loss (paper Eq. 13-17, SPEC §2).
+"""RMAvatar's training loss (paper Eq. 13-17; docs/model.md).
 
 L = rgb L1 + ssim (1 - SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset, with
   L_pos     = mean_i max(|mu_i| - eps_pos, 0)                (face-local position, eps_pos = 1)
@@ -11,11 +11,34 @@ the public release computes it (one mean per offset kind, summed).
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import torch
 
-from rmavatar.train.config import LossConfig
+from rmavatar.utils import UserError
+
+
+@dataclass
+class LossConfig:
+    """Loss weights: L = rgb L1 + ssim (1-SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset."""
+
+    rgb: float = 1.5
+    ssim: float = 0.2
+    lpips: float = 0.05
+    pos: float = 0.01
+    scaling: float = 1.0
+    offset: float = 1.0
+    eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
+    eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
+
+    def validate(self) -> "LossConfig":
+        for f in dataclasses.fields(self):
+            if getattr(self, f.name) < 0:
+                raise UserError(f"loss.{f.name} must be >= 0, got {getattr(self, f.name)}")
+        return self
+
 
 ImageFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 

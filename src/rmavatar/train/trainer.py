@@ -1,6 +1,10 @@
 """The training loop: one frame per step, Adam with the paper's learning rates, density control on the
 paper's (run-length-scaled) schedule, atomic checkpoints, exact resume, Ctrl-C and NaN safety.
 
+``train(cfg, run_dir)`` runs it; :class:`Trainer` is the loop itself, for code that drives steps
+(benchmarks, tests): ``setup()``, then ``step()`` as often as wanted, ``target(i, bg)`` for a frame's
+ground truth, ``save()``.
+
 The posed body of every training frame never changes during training (no pose refinement), so all
 of them are computed once, up front, in batches; a step then only runs avatar -> rasterizer -> losses.
 """
@@ -13,33 +17,39 @@ import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
+from rmavatar.avatar.model import Avatar
+from rmavatar.avatar.trained import (
+    body_signature,
+    check_body,
+    checkpoint_path,
+    read_checkpoint,
+    training_betas,
+)
+from rmavatar.body import PoseSequence, load_body_model, posed_vertices
+from rmavatar.data import load_dataset
+from rmavatar.data.registry import parse_spec
+from rmavatar.render.gaussians import render_gaussians
 from rmavatar.train.checkpoint import (
-    body_signature, capture_rng, check_body, checkpoint_path, prepare_run_dir, read_checkpoint,
-    restore_rng, save_checkpoint,
+    capture_rng,
+    prepare_run_dir,
+    restore_rng,
+    save_checkpoint,
 )
 from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
+from rmavatar.train.losses import total_loss
 from rmavatar.utils import UserError, atomic_path, resolve_device
 
 
 # ----------------------------------------------------------------------------------------------- small parts
 def normalize_data_spec(spec: str) -> str:
     """The dataset spec with its path made absolute, so a run remembers its data from any folder."""
-    from rmavatar.data.dataset import parse_spec
-
     kind, path, options = parse_spec(str(spec))
     query = "&".join(f"{k}={v}" for k, v in options.items())
     return f"{kind + ':' if kind else ''}{path.resolve()}{'?' + query if query else ''}"
-
-
-def position_lr(iteration: int, total: int, lr_start: float, lr_end: float) -> float:
-    """3DGS's log-linear decay: lr_start at iteration 0, lr_end at iteration ``total``."""
-    t = min(max(iteration / max(total, 1), 0.0), 1.0)
-    return math.exp(math.log(lr_start) * (1.0 - t) + math.log(lr_end) * t)
 
 
 class FrameSampler:
@@ -107,73 +117,6 @@ def resolve_body(cfg: TrainConfig, dataset) -> tuple[str, str | None]:
     spec = cfg.model.body or getattr(dataset, "body", None) or "anny"
     gender = cfg.model.gender or getattr(dataset, "gender", None)
     return spec, gender
-
-
-@torch.no_grad()
-def posed_vertices(body, params: dict, chunk: int = 32) -> torch.Tensor:
-    """Posed vertices [n,V,3] of all frames of a split, batched (params from Dataset.params(split))."""
-    n = len(params["body_pose"])
-    out = []
-    for s in range(0, n, chunk):
-        sl = slice(s, s + chunk)
-        res = body(
-            betas=torch.as_tensor(params["betas"][sl], dtype=torch.float32),
-            global_orient=torch.as_tensor(params["global_orient"][sl], dtype=torch.float32),
-            body_pose=torch.as_tensor(params["body_pose"][sl], dtype=torch.float32),
-            transl=torch.as_tensor(params["transl"][sl], dtype=torch.float32),
-        )
-        out.append(res.vertices.detach().float())
-    return torch.cat(out, 0)
-
-
-def build_avatar(body, cfg: TrainConfig, state: dict | None = None):
-    """The Avatar for ``body`` with the config's model options; ``state`` (``Avatar.checkpoint_state()``
-    from a checkpoint) restores it, Gaussian count and parent faces included."""
-    from rmavatar.avatar import Avatar, AvatarConfig
-
-    if state is not None:
-        return Avatar.from_state(body, state)
-    m = cfg.model
-    return Avatar.from_body(body, AvatarConfig(
-        sh_degree=m.sh_degree, rectifier=m.rectifier, coarse_to_fine=m.coarse_to_fine,
-        rectifier_precision=m.rectifier_precision, placement=m.placement,
-        num_gaussians=m.num_gaussians, init_opacity=m.init_opacity, seed=cfg.seed,
-    ))
-
-
-def make_optimizer(avatar, cfg: TrainConfig) -> torch.optim.Adam:
-    """Adam over named parameter groups with the paper's learning rates (eps 1e-15).
-
-    Group order and names are fixed, so a checkpoint's optimiser state loads into a rebuilt one; the
-    "position" group's lr is set every step by :func:`position_lr`.
-    """
-    o = cfg.optim
-    groups = [
-        {"name": "position", "params": [avatar.means], "lr": o.lr_position},
-        {"name": "rotation", "params": [avatar.quats], "lr": o.lr_rotation},
-        {"name": "scaling", "params": [avatar.log_scales], "lr": o.lr_scaling},
-        {"name": "opacity", "params": [avatar.opacity_logits], "lr": o.lr_opacity},
-        {"name": "sh_dc", "params": [avatar.sh_dc], "lr": o.lr_color},
-        {"name": "sh_rest", "params": [avatar.sh_rest], "lr": o.lr_color / o.sh_rest_divisor},
-    ]
-    if avatar.rectifier is not None:
-        groups.append({"name": "rectifier", "params": list(avatar.rectifier.parameters()), "lr": o.lr_rectifier})
-    return torch.optim.Adam(groups, lr=o.lr_position, eps=o.adam_eps)
-
-
-def make_density(avatar, optimizer, cfg: TrainConfig):
-    """The density controller on the paper's schedule scaled to the run length."""
-    from rmavatar.train.density import DensityController, DensitySchedule
-
-    d = cfg.density
-    schedule = DensitySchedule.scaled(
-        cfg.optim.iters, reference_iters=d.reference_iters, start=d.start, every=d.every, stop=d.stop,
-        reset_start=d.reset_start, reset_every=d.reset_every,
-    )
-    return DensityController(
-        avatar, optimizer, schedule, grad_threshold=d.grad_threshold, prune_opacity=d.prune_opacity,
-        percent_dense=d.percent_dense, max_gaussians=d.max_gaussians, enabled=d.enabled, seed=cfg.seed,
-    )
 
 
 def set_threads(n: int) -> None:
@@ -273,13 +216,11 @@ def train(
         if not cfg.data.path:
             raise UserError("no dataset given (data.path is empty)")
         cfg.data.path = normalize_data_spec(cfg.data.path)
-    from rmavatar.data import load_dataset
-
     # Open the dataset before RUN is touched, so a wrong path leaves nothing behind.
     load_dataset(cfg.data.path, size=cfg.data.size).num_frames(cfg.data.split)
     prepare_run_dir(run_dir, cfg.data.path, resume)
     save_config(cfg, run_dir / "config.yaml")
-    return _Trainer(cfg, run_dir, ckpt, progress).run()
+    return Trainer(cfg, run_dir, ckpt, progress).run()
 
 
 def _resume_payload(run_dir: Path, data: str | None) -> dict:
@@ -306,18 +247,22 @@ def _apply_resume_overrides(cfg: TrainConfig, overrides: list) -> None:
                             f"cannot change it to {value!r} (start a new run instead)")
 
 
-class _Trainer:
-    def __init__(self, cfg: TrainConfig, run_dir: Path, ckpt: dict | None, progress: bool):
+class Trainer:
+    """One training run. ``checkpoint``: a payload from :func:`read_checkpoint` to resume from, or None.
+
+    After :meth:`setup`: ``dataset``, ``body``, ``avatar`` (training mode), ``optimizer``, ``density``,
+    ``vertices`` [n,V,3] / ``body_pose`` [n,69] / ``viewmats`` [n,4,4] / ``Ks`` [n,3,3] of the training
+    frames (on ``device``), ``width``/``height``, ``iteration`` (steps done).
+    """
+
+    def __init__(self, cfg: TrainConfig, run_dir: Path, checkpoint: dict | None = None, progress: bool = True):
         self.cfg = cfg
         self.run_dir = run_dir
-        self.ckpt = ckpt
+        self.ckpt = checkpoint
         self.progress = progress
 
     # --- setup --------------------------------------------------------------------------------
-    def _setup(self) -> None:
-        from rmavatar.body import load_body_model
-        from rmavatar.data import load_dataset
-
+    def setup(self) -> None:
         cfg = self.cfg
         if cfg.threads > 0:
             set_threads(cfg.threads)
@@ -340,10 +285,12 @@ class _Trainer:
         if self.ckpt is not None:
             check_body(self.ckpt["body"], self.body, str(checkpoint_path(self.run_dir)))
         self.body_info = {**body_signature(self.body), "gender": gender}
+        self.betas = training_betas(params) if self.body.num_betas > 0 else None  # the shape a trained avatar keeps
         self.device = resolve_device(cfg.device)
         dev = self.device
         self.body.to(dev)
-        self.vertices = posed_vertices(self.body, params).to(dev)  # [n,V,3], fixed for the whole run
+        poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+        self.vertices = posed_vertices(self.body, poses, params["betas"]).to(dev)  # [n,V,3], fixed for the run
         self.body_pose = torch.as_tensor(params["body_pose"], dtype=torch.float32, device=dev)  # [n,69]
         cams = [self.dataset.camera(split, i) for i in range(n)]
         self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32, device=dev)
@@ -356,11 +303,14 @@ class _Trainer:
         self.bg_generator = torch.Generator().manual_seed(cfg.seed + 1)
         self.sampler = FrameSampler(n, cfg.seed)
 
-        state = self.ckpt["avatar"] if self.ckpt is not None else None
-        self.avatar = build_avatar(self.body, cfg, state=state).to(dev)
+        if self.ckpt is not None:
+            self.avatar = Avatar.from_state(self.body, self.ckpt["avatar"], where=str(checkpoint_path(self.run_dir)))
+        else:
+            self.avatar = cfg.model.build(self.body, seed=cfg.seed)
+        self.avatar.to(dev)
         self.avatar.train()
-        self.optimizer = make_optimizer(self.avatar, cfg)
-        self.density = make_density(self.avatar, self.optimizer, cfg)
+        self.optimizer = cfg.optim.build(self.avatar)
+        self.density = cfg.density.build(self.avatar, self.optimizer, cfg.optim.iters, seed=cfg.seed)
         self.iteration = 0
         if self.ckpt is not None:
             self.optimizer.load_state_dict(self.ckpt["optimizer"])
@@ -374,7 +324,8 @@ class _Trainer:
         for stale in checkpoint_path(self.run_dir).parent.glob(".last.*.tmp.pt"):
             stale.unlink(missing_ok=True)
 
-    def _frame_target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
+    def target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
+        """Frame ``i``'s image composited over the background ``bg`` [3]: [H,W,3] on the device."""
         frame = self.dataset.frame(self.cfg.data.split, i)
         image = torch.from_numpy(np.array(frame.image, dtype=np.float32)).to(self.device)
         mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32)).to(self.device)
@@ -387,6 +338,7 @@ class _Trainer:
             "config": to_dict(self.cfg),
             "data_spec": self.cfg.data.path,
             "body": self.body_info,
+            "betas": self.betas,
             "avatar": self.avatar.checkpoint_state(),
             "optimizer": self.optimizer.state_dict(),
             "density": self.density.state_dict(),
@@ -397,27 +349,22 @@ class _Trainer:
 
     # --- one step ---------------------------------------------------------------------------------
     def step(self) -> dict | None:
-        """One iteration; returns its scalars, or None when it was skipped (non-finite loss/gradient)."""
-        from rmavatar.render import rasterize
-        from rmavatar.train.losses import total_loss
-
+        """One iteration; returns its scalars, or None when it was skipped (non-finite loss/gradient).
+        Does not advance ``iteration`` (the loop does, so a skipped step still moves the schedules on)."""
         cfg = self.cfg
         it = self.iteration + 1
-        lr = position_lr(it - 1, cfg.optim.iters, cfg.optim.lr_position, cfg.optim.lr_position_final)
+        lr = cfg.optim.position_lr(it - 1)
         for group in self.optimizer.param_groups:
             if group.get("name") == "position":
                 group["lr"] = lr
         self.avatar.set_progress(it, cfg.optim.iters)
         i = self.sampler.next()
         bg = background_color(cfg.background, self.bg_generator).to(self.device)
-        target = self._frame_target(i, bg)
+        target = self.target(i, bg)
         gs = self.avatar(self.vertices[i], self.body_pose[i])
         if not _all_finite(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh):
             return None  # the rasterizer refuses non-finite input; nothing was changed yet
-        image, _, info = rasterize(
-            gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(self.viewmats[i]), self.viewmats[i],
-            self.Ks[i], self.width, self.height, background=bg,
-        )
+        image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height, background=bg)
         loss, parts = total_loss(image, target, gs, cfg.loss)
         if not torch.isfinite(loss):
             return None
@@ -434,7 +381,8 @@ class _Trainer:
 
     # --- loop ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
-        self._setup()
+        """Set up, train to ``cfg.optim.iters`` (saving on the way and at the end), return the result."""
+        self.setup()
         cfg = self.cfg
         total = cfg.optim.iters
         started = time.perf_counter()

@@ -144,23 +144,23 @@ class AvatarViewer:
         self.server.stop()
 
 
-def avatar_viewer(poser, seq=None, fps: float = 30.0, host: str = "127.0.0.1", port: int = 8080,
+def avatar_viewer(trained, seq=None, fps: float = 30.0, host: str = "127.0.0.1", port: int = 8080,
                   rest: str = "tpose", verbose: bool = False) -> AvatarViewer:
-    """Start a viewer for ``poser`` (rmavatar.animate.drive.Poser) playing the PoseSequence ``seq``
-    (re-centred like ``animate``), or standing in the rest pose ``rest`` when ``seq`` is None."""
+    """Start a viewer for ``trained`` (a :class:`rmavatar.avatar.TrainedAvatar`) playing the PoseSequence
+    ``seq`` (re-centred like ``animate``), or standing in the rest pose ``rest`` when ``seq`` is None."""
     from rmavatar.animate.jobs import VideoOptions, frame_the_body
     from rmavatar.animate.motion import recenter_motion
 
     if seq is None:
-        seq = poser.rest_pose(rest)
+        seq = trained.rest_pose(rest)
     else:
-        seq = recenter_motion(seq, poser.root_rest())
+        seq = recenter_motion(seq, trained.root_rest())
     sample = seq.select(sorted({round(i * (len(seq) - 1) / 15) for i in range(min(len(seq), 16))}))
     # framed for a narrower view than the 40 degrees the browser gets: leaves room around the body
-    center, distance = frame_the_body(poser.vertices(sample), VideoOptions(fov_deg=30.0))
+    center, distance = frame_the_body(trained.vertices(sample), VideoOptions(fov_deg=30.0))
 
     def frame_fn(i: int):
-        gs = poser.pose(seq, i)
+        gs = trained.pose(seq, i)
         return gs.means, gs.quats, gs.scales, gs.opacities, gs.sh
 
     state = ViewerState(frame_fn, len(seq), fps, center.numpy(), distance)

@@ -110,11 +110,10 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict
     """Render the subject and write a native dataset to ``out`` (atomically: a temporary folder renamed
     at the end). Also writes ``contact_sheet.png`` and ``smpl_true.npz`` (the noise-free poses) there.
     Returns a summary dict (frames per split, seconds)."""
-    import torch
     from scipy.spatial.transform import Rotation
     from tqdm import tqdm
 
-    from rmavatar.body import load_body_model
+    from rmavatar.body import PoseSequence, load_body_model, posed_vertices
     from rmavatar.data.native import NativeMeta, write_native
     from rmavatar.data.synth.motion import add_pose_noise
     from rmavatar.data.synth.render import render
@@ -131,14 +130,8 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict
     shots = plan(cfg, (float(ys.min()), float(ys.max())))
     n = len(shots)
     true = {k: np.stack([getattr(s, k) for s in shots]) for k in ("global_orient", "body_pose", "transl")}
-    with torch.no_grad():
-        verts = []
-        for a in range(0, n, 64):
-            b = slice(a, a + 64)
-            o = body(None, *(torch.as_tensor(true[k][b], dtype=torch.float32)
-                             for k in ("global_orient", "body_pose", "transl")))  # fmt: skip
-            verts.append(o.vertices.numpy())
-        verts = np.concatenate(verts)
+    poses = PoseSequence.from_arrays(true["global_orient"], true["body_pose"], true["transl"])
+    verts = posed_vertices(body, poses, chunk=64).numpy()
     stored = add_pose_noise(true, cfg.pose_noise, np.random.default_rng([cfg.seed, 2]))
     params = {k: v.astype(np.float32) for k, v in stored.items()}
     params["betas"] = np.zeros(10, dtype=np.float32)  # Anny's shape comes from the preset, not betas

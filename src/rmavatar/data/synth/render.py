@@ -7,7 +7,12 @@ import numpy as np
 
 from rmavatar.data.synth import texture as tx
 from rmavatar.data.synth.raster import rasterize, resolve, world_to_camera
-from rmavatar.data.synth.subject import GarmentState, Subject, pose_shell, vertex_normals
+from rmavatar.data.synth.subject import (
+    GarmentState,
+    Subject,
+    pose_shell,
+    vertex_normals,
+)
 
 # Light: a key light from the camera's upper left plus ambient, fixed in camera space so every
 # view of the turning person is lit alike (as a camera-mounted light would).

@@ -30,20 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
-    # Idle OpenMP threads sleep instead of spinning (before torch loads; the environment wins): on a
-    # busy 2-core machine spinning threads made a frame's avatar evaluation 1.2 s instead of 0.12 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from pathlib import Path
 
-    from rmavatar.animate.drive import Poser
+    from rmavatar.avatar import load_trained
     from rmavatar.export.export import check_ply_output, export_ply, pose_for_export
-    from rmavatar.train import load_run
 
     out = check_ply_output(Path(args.ply))
-    run_ = load_run(args.run)
-    poser = Poser.from_run(run_)
-    n = export_ply(poser, pose_for_export(poser, args.motion, args.frame, args.pose), out)
+    trained = load_trained(args.run)
+    n = export_ply(trained, pose_for_export(trained, args.motion, args.frame, args.pose), out)
     print(f"wrote {n} Gaussians to {out}")
     return 0

@@ -32,16 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
-    # Idle OpenMP threads sleep instead of spinning (before torch loads; the environment wins): on a
-    # busy 2-core machine spinning threads made a frame's avatar evaluation 1.2 s instead of 0.12 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import time
 
-    from rmavatar.animate.drive import Poser
-    from rmavatar.animate.motion import motion_to_sequence, parse_frame_range
-    from rmavatar.train import load_run
+    from rmavatar.animate.motion import parse_frame_range
+    from rmavatar.avatar import load_trained
+    from rmavatar.body import motion_to_sequence
     from rmavatar.utils import UserError
     from rmavatar.viewer.app import avatar_viewer
 
@@ -55,9 +50,9 @@ def run(args: argparse.Namespace) -> int:
         seq = motion_to_sequence(motion, source=str(args.motion))
         seq = seq.select(parse_frame_range(args.frames, len(seq)))
         fps = motion.fps or 30.0
-    run_ = load_run(args.run)
+    trained = load_trained(args.run)
     try:
-        viewer = avatar_viewer(Poser.from_run(run_), seq, fps=fps, host=args.host, port=args.port, rest=args.pose)
+        viewer = avatar_viewer(trained, seq, fps=fps, host=args.host, port=args.port, rest=args.pose)
     except OSError as exc:
         raise UserError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
     print(f"viewer running at http://{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:"

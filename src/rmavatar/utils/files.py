@@ -1,4 +1,4 @@
-"""Small shared helpers: the user cache directory and atomic file writes."""
+"""Files: the user cache folder, output-folder checks and atomic writes (a kill never leaves a half-written file)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-
-class UserError(Exception):
-    """An error caused by the user's input: the CLI prints its message without a traceback."""
+from rmavatar.utils.errors import UserError
 
 
 def cache_dir(*parts: str) -> Path:
@@ -26,21 +24,6 @@ def cache_dir(*parts: str) -> Path:
     path = Path(root, *parts)
     path.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def resolve_device(name: str):
-    """A torch.device from "auto" (CUDA when available), "cpu", "cuda" or "cuda:N"; UserError otherwise."""
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except RuntimeError:
-        raise UserError(f"device {name!r} is not a torch device (use auto, cpu, cuda or cuda:N)") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
-    return dev
 
 
 def check_writable_folder(path: str | os.PathLike, label: str | None = None) -> Path:

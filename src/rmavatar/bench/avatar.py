@@ -1,6 +1,7 @@
-"""Time the avatar's forward + backward (posing + rectifier), the part of a training step it owns.
+"""``rmavatar bench avatar``: the avatar's forward + backward (posing + rectifier), the part of a training
+step it owns, for the rectifier in float32 and bfloat16 and without a rectifier.
 
-    python -m rmavatar.avatar.benchmark --gaussians 25000 --repeats 20 [--threads 2] [--body anny]
+    rmavatar bench avatar --gaussians 25000 --repeats 20 [--threads 2] [--body anny]
 
 Prints one JSON object: median / min wall seconds and median process CPU seconds per step, for the
 rectifier in float32 and bfloat16 and without a rectifier. The machine's other load shows in the
@@ -9,7 +10,6 @@ wall times; CPU seconds (summed over threads) are steadier on a shared machine.
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import time
@@ -50,33 +50,24 @@ def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats
             "cpu_median_s": statistics.median(cpus)}
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(opts) -> int:
+    """``opts``: the options of ``rmavatar bench avatar`` (gaussians, repeats, threads, body)."""
     from rmavatar.avatar import Avatar, AvatarConfig
 
-    p = argparse.ArgumentParser(prog="python -m rmavatar.avatar.benchmark", description=__doc__.split("\n")[0])
-    p.add_argument("--gaussians", type=int, default=25_000)
-    p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
-    p.add_argument("--body", default=None, help="body model spec (e.g. anny); default: an icosphere mesh")
-    args = p.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    faces, binding, template, verts = _mesh(args.body)
+    if opts.threads:
+        torch.set_num_threads(opts.threads)
+    faces, binding, template, verts = _mesh(opts.body)
     torch.manual_seed(0)
     pose = torch.randn(69) * 0.3
-    result = {"gaussians": args.gaussians, "threads": torch.get_num_threads(), "faces": int(faces.shape[0])}
+    result = {"gaussians": opts.gaussians, "threads": torch.get_num_threads(), "faces": int(faces.shape[0])}
     for name, cfg in (
         ("no_rectifier", AvatarConfig(rectifier=False)),
         ("rectifier_float32", AvatarConfig()),
         ("rectifier_bfloat16", AvatarConfig(rectifier_precision="bfloat16")),
     ):
-        cfg.placement, cfg.num_gaussians = "area", args.gaussians
+        cfg.placement, cfg.num_gaussians = "area", opts.gaussians
         avatar = Avatar(faces, binding, template, cfg)
         avatar.active_sh_degree.fill_(cfg.sh_degree)
-        result[name] = time_avatar(avatar, verts, pose, args.repeats)
+        result[name] = time_avatar(avatar, verts, pose, opts.repeats)
     print(json.dumps(result, indent=2))
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

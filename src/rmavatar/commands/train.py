@@ -73,13 +73,7 @@ def _overrides(args: argparse.Namespace) -> list[tuple[object, str | None, str]]
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
-    # Idle OpenMP threads sleep instead of spinning (must be set before torch loads; the environment
-    # wins). On a busy machine spinning 2-thread steps wait on descheduled partners: measured 1.9 s vs
-    # 0.52 s per step at 64x64 under load 8; passive waiting brings 2 threads back to 0.50 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from rmavatar.train.trainer import train
+    from rmavatar.train import train
 
     if args.resume:
         if args.config:

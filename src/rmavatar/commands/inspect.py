@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
-
 DESCRIPTION = """\
 Summarise a dataset: its kind (native, peoplesnapshot, zju), name, gender/body, frames per split, image
 size, camera intrinsics and position, and the range of its SMPL-format parameters per split.
@@ -40,49 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="read every frame's image and mask (finds unreadable or missized files)")
 
 
-def _stats(a: np.ndarray) -> dict:
-    a = np.asarray(a, np.float64)
-    return {"min": a.min(0).round(4).tolist(), "max": a.max(0).round(4).tolist(),
-            "mean": a.mean(0).round(4).tolist()}
-
-
-def summarize(ds) -> dict:
-    """A JSON-ready summary of a Dataset."""
-    cam = ds.camera(next(iter(ds.splits)), 0)
-    cams = [ds.camera(s, i) for s in ds.splits for i in range(ds.num_frames(s))]
-    distinct = len({(c.K.tobytes(), c.viewmat.tobytes()) for c in cams})
-    out = {
-        "kind": ds.kind,
-        "name": ds.name,
-        "path": str(ds.root),
-        "gender": ds.gender,
-        "body": ds.body,
-        "fps": ds.fps,
-        "image_size": list(ds.image_size),
-        "source_size": list(ds.source_size),
-        "splits": {s: {"frames": len(idx), "first": idx[0], "last": idx[-1]} for s, idx in ds.splits.items()},
-        "camera": {
-            "fx": round(float(cam.K[0, 0]), 3), "fy": round(float(cam.K[1, 1]), 3),
-            "cx": round(float(cam.K[0, 2]), 3), "cy": round(float(cam.K[1, 2]), 3),
-            "position": cam.position.astype(np.float64).round(4).tolist(),
-            "distinct_cameras": distinct,
-        },
-        "poses": {},
-    }
-    for s in ds.splits:
-        p = ds.params(s)
-        bp = np.abs(p["body_pose"])
-        out["poses"][s] = {
-            "global_orient_deg": _stats(np.degrees(p["global_orient"])),
-            "transl": _stats(p["transl"]),
-            "body_pose_abs_max_deg": round(float(np.degrees(bp.max())), 2),
-            "body_pose_abs_mean_deg": round(float(np.degrees(bp.mean())), 2),
-            "betas_mean": p["betas"].astype(np.float64).mean(0).round(4).tolist(),
-            "distinct_betas": int(len(np.unique(p["betas"].round(6), axis=0))),
-        }
-    return out
-
-
 def _print(summary: dict) -> None:
     w, h = summary["image_size"]
     sw, sh = summary["source_size"]
@@ -103,51 +58,12 @@ def _print(summary: dict) -> None:
               f"{p['distinct_betas']} distinct betas")
 
 
-def posed_vertices(body, frame) -> np.ndarray:
-    """The body posed by a Frame's parameters -> vertices [V,3] (numpy)."""
-    import torch
-
-    t = lambda a: torch.as_tensor(np.asarray(a, np.float32))[None]  # noqa: E731
-    nb = int(getattr(body, "num_betas", 0))
-    betas = None
-    if nb > 0:
-        full = np.zeros(nb, np.float32)
-        full[: min(nb, 10)] = frame.betas[:nb]
-        betas = t(full)
-    with torch.no_grad():
-        out = body(betas, t(frame.global_orient), t(frame.body_pose), t(frame.transl))
-    return out.vertices[0].detach().cpu().numpy()
-
-
-def overlay_sheet(ds, body, per_split: int = 4) -> np.ndarray:
-    """Evenly spaced frames of every split (a row each) with the posed body's vertices drawn where the
-    frame's camera projects them; outside the mask the image is dimmed. Returns [H,W,3] uint8."""
-    from PIL import Image, ImageDraw
-
-    w, h = ds.image_size
-    splits = list(ds.splits)
-    sheet = Image.new("RGB", (per_split * w, len(splits) * (h + 14)), (255, 255, 255))
-    draw = ImageDraw.Draw(sheet)
-    for row, split in enumerate(splits):
-        n = ds.num_frames(split)
-        for col, i in enumerate(sorted(set(np.linspace(0, n - 1, min(per_split, n)).round().astype(int)))):
-            f = ds.frame(split, int(i))
-            tile = f.image * (0.3 + 0.7 * f.mask[..., None])
-            x0, y0 = col * w, row * (h + 14)
-            sheet.paste(Image.fromarray((tile * 255).round().astype(np.uint8)), (x0, y0 + 14))
-            uv = f.camera.project(posed_vertices(body, f))
-            keep = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            for u, v in uv[keep][:: max(1, int(keep.sum()) // 4000)]:
-                draw.point((x0 + float(u), y0 + 14 + float(v)), fill=(255, 40, 40))
-            draw.text((x0 + 2, y0 + 1), f"{split} #{f.index}", fill=(0, 0, 0))
-    return np.asarray(sheet)
-
-
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from rmavatar.data import load_dataset
-    from rmavatar.data.dataset import detect_kind, parse_spec
+    from rmavatar.data.registry import detect_kind, parse_spec
+    from rmavatar.data.summary import overlay_sheet, summarize
     from rmavatar.utils import atomic_path
 
     kind, path, _ = parse_spec(args.data)

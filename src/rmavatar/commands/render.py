@@ -1,7 +1,8 @@
-"""``rmavatar render``: render a Gaussian scene to a PNG.
+"""``rmavatar render``: render a Gaussian scene to a PNG, or a trained avatar's turntable to a video.
 
 Scene sources (pick one): ``--random N`` (a structured synthetic figure of N Gaussians) or
 ``--ply FILE`` (a standard 3DGS PLY). Add a source by adding an option and a loader below.
+Avatar mode: ``rmavatar render RUN --turntable --out turn.mp4``.
 """
 
 from __future__ import annotations
@@ -23,14 +24,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"), help="rasterizer backend")
     parser.epilog = "Examples:\n  rmavatar render --random 20000 --out figure.png\n  rmavatar render --ply point_cloud.ply --out splat.png --size 768"
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    from rmavatar.animate.turntable import add_turntable_arguments
-
-    add_turntable_arguments(parser)
+    _turntable_arguments(parser)
 
 
 def _frame_camera(means, size: int, azimuth: float):
     """A camera orbiting the scene's median point at a distance that frames its central 90%."""
-    import math
 
     import torch
 
@@ -59,9 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if args.size <= 0 or args.size > 8192:
         raise UserError(f"--size must be 1..8192, got {args.size}")
     if args.run is not None:
-        from rmavatar.animate.turntable import run_turntable
-
-        return run_turntable(args)
+        return _run_turntable(args)
     if not args.out.lower().endswith(".png"):
         raise UserError(f"--out {args.out}: give a .png file name")
     if args.random is not None:
@@ -91,4 +87,46 @@ def run(args: argparse.Namespace) -> int:
         iio.imwrite(tmp, pixels)
     print(f"wrote {args.out} ({args.size}x{args.size}, {int(info['visible'].sum())} of {len(scene['means'])} "
           f"Gaussians visible, backend {info['backend']})")
+    return 0
+
+
+def _turntable_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the avatar mode (``--out``, ``--size``, ``--background`` are the render command's)."""
+    group = parser.add_argument_group("avatar mode (rmavatar render RUN --turntable --out turn.mp4)")
+    group.add_argument("--turntable", action="store_true",
+                       help="a 360-degree orbit around the trained avatar of RUN: --out is an .mp4 or a folder/ "
+                            "for PNG frames")
+    group.add_argument("--frames", type=int, default=90, metavar="N", help="turntable frames (default 90)")
+    group.add_argument("--fps", type=float, default=30.0, help="turntable frame rate (default 30)")
+    group.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+                       help="the avatar's pose: tpose (the canonical zero pose, default), apose (arms lowered 45 "
+                            "degrees) or train (the median pose of the training frames, e.g. their A-pose)")
+    group.add_argument("--elevation", type=float, default=0.0, help="camera height angle in degrees (default 0)")
+    group.add_argument("--fov", type=float, default=30.0, help="vertical field of view in degrees (default 30)")
+    parser.epilog = (parser.epilog or "") + (
+        "\n  rmavatar render runs/me --turntable --out turn.mp4 --size 512 --frames 120"
+    )
+
+
+def _run_turntable(args: argparse.Namespace) -> int:
+    from rmavatar.animate.jobs import VideoOptions, turntable_video
+    from rmavatar.animate.video import check_output
+    from rmavatar.avatar import load_trained
+    from rmavatar.utils import UserError
+
+    if not args.turntable:
+        raise UserError("rendering a trained run needs --turntable (e.g. rmavatar render RUN --turntable --out turn.mp4)")
+    if args.frames < 1:
+        raise UserError(f"--frames must be >= 1, got {args.frames}")
+    if args.fps <= 0:
+        raise UserError(f"--fps must be positive, got {args.fps}")
+    background = tuple(float(v) for v in args.background)
+    if not all(0.0 <= v <= 1.0 for v in background):
+        raise UserError(f"--background values must be in 0..1, got {background}")
+    check_output(args.out)  # before any slow work
+    trained = load_trained(args.run)
+    opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=args.fps)
+    n = turntable_video(trained, args.out, num_frames=args.frames, pose=args.pose, opts=opts,
+                        elevation_deg=args.elevation)
+    print(f"wrote a {n}-frame turntable of {args.run} to {args.out}")
     return 0

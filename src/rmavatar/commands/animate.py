@@ -38,17 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
-    # Idle OpenMP threads sleep instead of spinning (before torch loads; the environment wins): on a
-    # busy 2-core machine spinning threads made a frame's avatar evaluation 1.2 s instead of 0.12 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from rmavatar.animate.drive import Poser, parse_background
-    from rmavatar.animate.jobs import VideoOptions, animate_video
-    from rmavatar.animate.motion import motion_to_sequence, parse_frame_range
+    from rmavatar.animate.jobs import VideoOptions, animate_video, parse_background
+    from rmavatar.animate.motion import parse_frame_range
     from rmavatar.animate.video import check_output
-    from rmavatar.body import load_motion
-    from rmavatar.train import load_run
+    from rmavatar.avatar import load_trained
+    from rmavatar.body import load_motion, motion_to_sequence
     from rmavatar.utils import UserError
 
     if args.fps is not None and args.fps <= 0:
@@ -62,8 +56,8 @@ def run(args: argparse.Namespace) -> int:
     if args.fps and motion.fps and args.fps < motion.fps:
         step = max(1, round(motion.fps / args.fps))
     seq = seq.select(parse_frame_range(args.frames, len(seq), step))
-    run_ = load_run(args.run, device=args.device)
+    trained = load_trained(args.run, device=args.device)
     opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=fps)
-    n = animate_video(Poser.from_run(run_), seq, args.out, camera=args.camera, opts=opts)
+    n = animate_video(trained, seq, args.out, camera=args.camera, opts=opts)
     print(f"wrote {n} frames at {fps:g} fps to {args.out}")
     return 0

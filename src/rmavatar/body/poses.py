@@ -1,0 +1,74 @@
+"""Sequences of SMPL-format poses and the posed body they give.
+
+``PoseSequence`` holds global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors, SMPL's
+conventions); :func:`posed_vertices` runs a body model over it in chunks; :func:`rest_pose` gives the
+canonical standing poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rmavatar.utils import UserError
+
+
+@dataclass
+class PoseSequence:
+    """SMPL-convention poses: global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors)."""
+
+    global_orient: torch.Tensor
+    body_pose: torch.Tensor
+    transl: torch.Tensor
+
+    @classmethod
+    def from_arrays(cls, global_orient, body_pose, transl) -> "PoseSequence":
+        """From numpy arrays or tensors (e.g. a dataset split's ``params``), as float32 tensors."""
+        t = lambda a: torch.as_tensor(np.asarray(a, np.float32) if not torch.is_tensor(a) else a,  # noqa: E731
+                                      dtype=torch.float32)
+        return cls(t(global_orient), t(body_pose), t(transl))
+
+    def __len__(self) -> int:
+        return int(self.global_orient.shape[0])
+
+    def select(self, index) -> "PoseSequence":
+        return PoseSequence(self.global_orient[index], self.body_pose[index], self.transl[index])
+
+    def to(self, device) -> "PoseSequence":
+        return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device))
+
+
+def rest_pose(kind: str = "tpose") -> PoseSequence:
+    """A one-frame canonical pose at the origin: 'tpose' (all zero) or 'apose' (arms lowered 45 degrees
+    at the shoulders, as many avatar methods train in)."""
+    go = torch.zeros(3)
+    pose = torch.zeros(69)
+    if kind == "apose":
+        # body_pose holds joints 1..23; SMPL joints 16/17 are the left/right shoulders.
+        # The body's left arm points along +x, so lowering it is a negative turn about z.
+        pose[(16 - 1) * 3 + 2] = -np.pi / 4
+        pose[(17 - 1) * 3 + 2] = np.pi / 4
+    elif kind != "tpose":
+        raise UserError(f"unknown rest pose {kind!r} (choose tpose or apose)")
+    return PoseSequence(go[None], pose[None], torch.zeros(1, 3))
+
+
+@torch.no_grad()
+def posed_vertices(body, poses: PoseSequence, betas: torch.Tensor | None = None, chunk: int = 32) -> torch.Tensor:
+    """Posed vertices [n,V,3] (float32, on the body's device) of every pose of ``poses``.
+
+    ``betas``: None (the body's default shape), [1,nb] (one shape for all frames) or [n,nb] (per frame).
+    Runs ``chunk`` frames per body forward to bound memory.
+    """
+    device = body.v_template.device
+    poses = poses.to(device)
+    if betas is not None:
+        betas = torch.as_tensor(betas, dtype=torch.float32).to(device)
+    out = []
+    for s in range(0, len(poses), chunk):
+        part = poses.select(slice(s, s + chunk))
+        b = betas[s:s + chunk] if betas is not None and betas.shape[0] > 1 else betas
+        out.append(body(b, part.global_orient, part.body_pose, part.transl).vertices.float())
+    return torch.cat(out, 0)

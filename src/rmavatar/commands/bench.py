@@ -1,0 +1,129 @@
+"""``rmavatar bench NAME``: run one benchmark (the measuring code lives in :mod:`rmavatar.bench`).
+
+Each NAME has an options builder here and a ``run(options) -> int`` in its ``rmavatar.bench`` module;
+the modules import the heavy parts inside ``run``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+
+# name -> (module, one-line help). Add a row per benchmark.
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "raster": ("rmavatar.bench.raster", "rasterizer forward / forward+backward time, peak memory, Gaussians/s"),
+    "quality": ("rmavatar.bench.quality", "full model vs the paper's ablations: PSNR/SSIM/LPIPS on test and novel_pose, time"),
+    "step": ("rmavatar.bench.step", "training iteration time at 256x256 (~25k Gaussians) and its breakdown by stage"),
+    "speed": ("rmavatar.bench.speed", "rasterizer, training step and rendering speed, each as time and as a ratio to a reference path"),
+    "avatar": ("rmavatar.bench.avatar", "the avatar's forward+backward (posing + rectifier): float32, bfloat16, no rectifier"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="benchmark", metavar="NAME", required=True)
+    for name, (_, help_text) in BENCHMARKS.items():
+        _OPTIONS[name](sub.add_parser(name, help=help_text, description=help_text))
+
+
+def run(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(BENCHMARKS[args.benchmark][0]).run(args) or 0)
+
+
+def _raster_options(parser: argparse.ArgumentParser) -> None:
+    from rmavatar.bench.raster import DEFAULT_CONFIGS
+
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    parser.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), metavar="NxSIZE",
+                        help="Gaussian count x square image size (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (default 7)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed runs first (default 2)")
+    parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"),
+                        help="rasterizer backend (default: auto)")
+    parser.add_argument("--device", default="cpu", help="torch device of the scene (cuda for gsplat)")
+    parser.add_argument("--sh-degree", type=int, default=3, help="SH degree of the colours (default 3)")
+    parser.add_argument("--disc-scale", type=float, default=1.5,
+                        help="Gaussian size as a multiple of the point spacing (default 1.5)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and Numba threads (default: their defaults, one per core)")
+    parser.add_argument("--no-reference", action="store_true", help="skip the dense reference comparison")
+    parser.epilog = "Example: rmavatar bench raster --json bench_raster.json"
+
+
+def _quality_options(parser: argparse.ArgumentParser) -> None:
+    from rmavatar.bench.quality import VARIANTS
+
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = """examples:
+  rmavatar bench quality --json bench_quality.json              # CPU budget: 256px, 1000 iterations
+  rmavatar bench quality --iters 50000 --size 1080 --device cuda --data peoplesnapshot:DIR --json q.json
+  rmavatar bench quality --variants full no_rectifier --iters 300 --size 128
+"""
+    parser.add_argument("--json", metavar="FILE", help="write the results to this JSON file")
+    parser.add_argument("--work", type=Path, default=Path("bench_quality_runs"),
+                        help="folder for the dataset and the runs (default bench_quality_runs; reused on rerun)")
+    parser.add_argument("--data", default=None, help="dataset (default: the synthetic subject of --seed)")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS, metavar="V",
+                        help=f"which variants (default all: {' '.join(VARIANTS)})")
+    parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
+    parser.add_argument("--iters", type=int, default=1000, help="iterations per variant (default 1000)")
+    parser.add_argument("--seed", type=int, default=0, help="subject and training seed (default 0)")
+    parser.add_argument("--max-gaussians", type=int, default=40_000,
+                        help="densification cap (default 40000, as the demo; 0 = none)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu or cuda")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _step_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
+    parser.add_argument("--data", metavar="DATA",
+                        help="dataset to use (default: a small synthetic subject made in a temporary folder)")
+    parser.add_argument("--gaussians", type=int, default=None,
+                        help="Gaussian count (placement by area; default: one per binding face, ~25k for Anny)")
+    parser.add_argument("--steps", type=int, default=15, help="timed training steps (default 15)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU path)")
+    parser.add_argument("--no-rectifier", action="store_true", help="time the 'w/o GauRec' model")
+    parser.epilog = "Example: rmavatar bench step --json bench_step.json"
+
+
+def _speed_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    parser.add_argument("--size", type=int, default=256,
+                        help="image size of the rasterizer and training-step measurements (default 256)")
+    parser.add_argument("--gaussians", type=int, default=25_000,
+                        help="Gaussian count of the rasterizer scene (default 25000)")
+    parser.add_argument("--avatar-gaussians", type=int, default=None,
+                        help="Gaussian count of the avatar in the training step and rendering, placed by area "
+                             "(at least one per binding face; default: one per binding face, 24864 for Anny)")
+    parser.add_argument("--render-sizes", type=int, nargs="+", default=[256, 512], metavar="SIZE",
+                        help="image sizes of the rendering throughput (default: 256 512)")
+    parser.add_argument("--raster-reference", default="1000x64", metavar="NxSIZE",
+                        help="configuration of the dense reference rasterizer (default 1000x64)")
+    parser.add_argument("--render-reference-size", type=int, default=32,
+                        help="image size of the dense-reference rendering pipeline, with all Gaussians "
+                             "(default 32)")
+    parser.add_argument("--repeats", type=int, default=9, help="timed repeats per measurement (default 9)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed runs first (default 3)")
+    parser.add_argument("--steps", type=int, default=15, help="timed training steps per variant (default 15)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and Numba threads (default 2)")
+    parser.add_argument("--data", metavar="DATA",
+                        help="dataset for the training step and the avatar's poses (default: a small "
+                             "synthetic subject made in a temporary folder)")
+    parser.add_argument("--run", metavar="RUN",
+                        help="render this trained run's avatar (default: a freshly initialised avatar)")
+    parser.epilog = "Example: rmavatar bench speed --json bench_speed.json"
+
+
+def _avatar_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--gaussians", type=int, default=25_000, help="Gaussian count (default 25000)")
+    parser.add_argument("--repeats", type=int, default=20, help="timed repeats (default 20)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
+    parser.add_argument("--body", default=None, help="body model spec (e.g. anny); default: an icosphere mesh")
+
+
+_OPTIONS = {"raster": _raster_options, "quality": _quality_options, "step": _step_options, "speed": _speed_options,
+            "avatar": _avatar_options}

@@ -1,0 +1,20 @@
+"""Picking the torch device."""
+
+from __future__ import annotations
+
+from rmavatar.utils.errors import UserError
+
+
+def resolve_device(name: str):
+    """A torch.device from "auto" (CUDA when available), "cpu", "cuda" or "cuda:N"; UserError otherwise."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"device {name!r} is not a torch device (use auto, cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
+    return dev
