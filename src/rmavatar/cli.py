@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("rmavatar.render.cli", "render a Gaussian scene (synthetic figure or 3DGS PLY) to a PNG"),
     "bench": ("rmavatar.bench.cli", "benchmarks: bench raster (rasterizer speed and memory)"),
     "synth": ("rmavatar.data.synth.cli", "render the synthetic clothed subject (turning in an A-pose, novel poses) into a native dataset"),
+    "batch": ("rmavatar.commands.batch", "train and evaluate many avatars from a JOBS.yaml on a Ray cluster or this machine; results tables"),
+    "reproduce": ("rmavatar.commands.reproduce", "reproduce the paper's tables (PeopleSnapshot, ZJU-MoCap, ablations) as one batch"),
 }
 
 

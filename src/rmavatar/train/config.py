@@ -227,3 +227,45 @@ def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
 
     with atomic_path(path) as tmp:
         tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+
+
+# The paper's ablations (§4.4) as dotted overrides: each flips exactly one switch of the full model.
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "full": {},
+    "no_rectifier": {"model.rectifier": False},  # "w/o GauRec": Gaussians fixed to their faces
+    "no_offset_loss": {"loss.offset": 0.0},  # "w/o OffsetLoss"
+    "no_scaling_loss": {"loss.scaling": 0.0},  # "w/o ScalingLoss"
+}
+
+
+def flatten(values: dict, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings -> dotted keys: {"optim": {"iters": 5}} -> {"optim.iters": 5}."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def apply_overrides(cfg: TrainConfig, overrides: dict[str, Any], where: str = "overrides") -> TrainConfig:
+    """A copy of ``cfg`` with dotted keys set (``{"optim.iters": 1000, "model.rectifier": False}``;
+    nested mappings work too), type-checked like a config file: errors name ``where`` and the key."""
+    merged = to_dict(cfg)
+    sections = sorted(k for k, v in merged.items() if isinstance(v, dict))
+    for key, value in flatten(overrides).items():
+        *path, leaf = str(key).split(".")
+        node = merged
+        for depth, part in enumerate(path):
+            if not isinstance(node.get(part), dict):
+                head = ".".join(path[: depth + 1])
+                raise UserError(f"{where}: unknown key {key!r} ({head!r} is not a config section; sections: "
+                                f"{', '.join(sections)}; top-level keys: "
+                                f"{', '.join(k for k in merged if k not in sections)})")
+            node = node[part]
+        if isinstance(node.get(leaf), dict):
+            raise UserError(f"{where}: {key!r} is a config section, give one of its keys ({key}.KEY)")
+        node[leaf] = value
+    return from_dict(TrainConfig, merged, where=where)
