@@ -82,17 +82,18 @@ def test_fingerprint_ignores_runtime_settings_only():
     a, b = jobs_of("jobs: [{name: a, data: x, splits: [test]}]")[0], jobs_of(
         "jobs: [{name: a, data: x, splits: [test, novel_pose]}]")[0]
     assert a.fingerprint() != b.fingerprint()
+    assert a.fingerprint() != jobs_of("jobs: [{name: a, data: x, eval_frames: 3}]")[0].fingerprint()
 
 
 def test_yaml_entry_reads_back_as_the_same_job(tmp_path):
     jobs = jobs_of("""
-defaults: {overrides: {iters: 12, loss.offset: 0.5}}
+defaults: {overrides: {iters: 12, loss.offset: 0.5}, eval_frames: 3}
 matrix: {subjects: [{name: s, data: d, body: anny}], variants: [no_rectifier]}
 """)
     (tmp_path / "again.yaml").write_text(yaml.safe_dump({"jobs": [j.yaml_entry() for j in jobs]}))
     again = load_jobs(tmp_path / "again.yaml")
-    assert [(j.name, j.subject, j.variant, j.data, j.body, j.splits, j.config) for j in again] == \
-        [(j.name, j.subject, j.variant, j.data, j.body, j.splits, j.config) for j in jobs]
+    assert [(j.name, j.subject, j.variant, j.data, j.body, j.splits, j.eval_frames, j.config) for j in again] == \
+        [(j.name, j.subject, j.variant, j.data, j.body, j.splits, 3, j.config) for j in jobs]
     assert again[0].fingerprint() == jobs[0].fingerprint()
 
 
@@ -107,6 +108,8 @@ matrix: {subjects: [{name: s, data: d, body: anny}], variants: [no_rectifier]}
     ("jobs: [{name: a, data: x}, {name: a, data: y}]", "name 'a' is used twice"),
     ("jobs: [{name: a, data: x, splits: []}]", "splits: must be a non-empty list"),
     ("jobs: [{name: a, data: x, splits: [test, test]}]", "distinct split names"),
+    ("jobs: [{name: a, data: x, eval_frames: 0}]", "eval_frames: must be a whole number >= 1"),
+    ("defaults: {eval_frames: two}\njobs: [{name: a, data: x}]", "eval_frames: must be a whole number"),
     ("jobs: [{name: a, data: x, body: smplx:m}]", "body: must be anny"),
     ("jobs: [{name: a, data: x, color: red}]", r"job 'a': unknown key\(s\) color"),
     ("jobs: [{name: a, data: x, overrides: {optim.iterz: 3}}]", r"job 'a': overrides.optim: unknown key\(s\) iterz"),
@@ -121,7 +124,8 @@ matrix: {subjects: [{name: s, data: d, body: anny}], variants: [no_rectifier]}
     ("matrix: {subjects: [{name: s, data: x}], variants: [w/o everything]}", "unknown variant 'w/o everything'"),
     ("matrix: {subjects: [], variants: [full]}", "subjects: must be a non-empty list"),
     ("matrix: {subjects: [{name: s, data: x}], variants: [{overrides: {}}]}", r"variants\[0\]: a variant needs a name"),
-    ("matrix: {subjects: [{name: s, data: x, overrides: {loss.offset: -1}}]}", "job 's-default' .*loss.offset must be >= 0"),
+    ("matrix: {subjects: [{name: s, data: x, overrides: {loss.offset: -1}}]}",
+     "job 's-default' .*loss.offset must be >= 0"),
 ])
 def test_bad_jobs_files_name_the_job_and_key(text, match):
     with pytest.raises(UserError, match=match):
@@ -182,7 +186,8 @@ def _result(job, variant, status="ok", psnr=30.0, splits=("test",), **kw):
             "error": None if status == "ok" else "boom | bad", "iterations": 100 if status == "ok" else None,
             "gaussians": 1000, "train_seconds": 10.0, "eval_seconds": 1.0, **kw}
     if status == "ok":
-        base["splits"] = {s: {"psnr": psnr + i, "ssim": 0.9, "lpips": 0.1, "frames": 5, "resolution": [64, 64],
+        base["splits"] = {s: {"psnr": psnr + i, "ssim": 0.9, "lpips": 0.1, "frames": 5, "frames_in_split": 5,
+                              "resolution": [64, 64],
                               "background": "white"} for i, s in enumerate(splits)}
     return base
 
@@ -279,6 +284,8 @@ def test_reproduce_plan_is_the_papers(tmp_path):
     only = parse_jobs(paper_jobs(None, zju, "anny", iters=7, size=64, subjects=["377", "392"]))
     assert [j.name for j in only] == ["zju-377-full", "zju-392-full"]
     assert only[0].config["optim"]["iters"] == 7 and only[0].config["data"]["size"] == 64
+    assert only[0].eval_frames is None and jobs[0].eval_frames is None
+    assert parse_jobs(paper_jobs(None, zju, "anny", eval_frames=5))[0].eval_frames == 5
     t1 = parse_jobs(paper_jobs(ps, zju, "anny", tables=[1]))
     assert [j.name for j in t1] == [f"{s}-full" for s in TABLE1]
     t4 = parse_jobs(paper_jobs(ps, None, "anny", tables=[4], subjects=["male-4-casual"]))

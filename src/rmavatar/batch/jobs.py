@@ -7,6 +7,7 @@ matrices)::
     defaults:                         # optional, for every job
       body: anny                      # body model spec (default: the dataset's own choice)
       splits: [test]                  # splits to evaluate (default [test])
+      eval_frames: null               # score only the first N frames of each split (default: all)
       overrides: {iters: 1000, size: 256, density.max_gaussians: 40000}
     jobs:
       - name: s0                      # folder name under ROOT: letters, digits, . _ -
@@ -63,16 +64,18 @@ class Job:
     body: str | None
     splits: list[str]
     config: dict = field(repr=False)
+    eval_frames: int | None = None  # score only the first N frames of each split; None = all
 
     def fingerprint(self) -> str:
         """A hash of everything that decides the job's results (not threads, device or logging)."""
         cfg = {k: v for k, v in self.config.items() if k not in RUNTIME_KEYS}
-        blob = json.dumps({"config": cfg, "splits": self.splits}, sort_keys=True)
+        blob = json.dumps({"config": cfg, "splits": self.splits, "eval_frames": self.eval_frames}, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
     def to_dict(self) -> dict:
         return {"name": self.name, "subject": self.subject, "variant": self.variant, "data": self.data,
-                "body": self.body, "splits": list(self.splits), "config": self.config,
+                "body": self.body, "splits": list(self.splits), "eval_frames": self.eval_frames,
+                "config": self.config,
                 "fingerprint": self.fingerprint()}
 
     def yaml_entry(self) -> dict:
@@ -87,6 +90,8 @@ class Job:
         if self.body is not None:
             entry["body"] = self.body
         entry["splits"] = list(self.splits)
+        if self.eval_frames is not None:
+            entry["eval_frames"] = self.eval_frames
         if overrides:
             entry["overrides"] = overrides
         return entry
@@ -115,7 +120,7 @@ def parse_jobs(data: Any, base: str | os.PathLike = ".", where: str = "JOBS.yaml
     _check_keys(data, {"defaults", "jobs", "matrix"}, where)
     defaults = data.get("defaults") or {}
     _check_mapping(defaults, f"{where}: defaults")
-    _check_keys(defaults, {"body", "splits", "overrides"}, f"{where}: defaults")
+    _check_keys(defaults, {"body", "splits", "eval_frames", "overrides"}, f"{where}: defaults")
     raw: list[tuple[str, dict]] = []  # (where, merged job fields)
     jobs_in = data.get("jobs") or []
     if not isinstance(jobs_in, list):
@@ -125,10 +130,11 @@ def parse_jobs(data: Any, base: str | os.PathLike = ".", where: str = "JOBS.yaml
         _check_mapping(job, w)
         name = job.get("name")
         w = f"{where}: job {name!r}" if isinstance(name, str) else w
-        _check_keys(job, {"name", "data", "body", "splits", "overrides", "subject", "variant"}, w)
+        _check_keys(job, {"name", "data", "body", "splits", "eval_frames", "overrides", "subject", "variant"}, w)
         raw.append((w, {
             "name": name, "data": job.get("data"), "body": job.get("body", defaults.get("body")),
             "splits": job.get("splits", defaults.get("splits")),
+            "eval_frames": job.get("eval_frames", defaults.get("eval_frames")),
             "subject": job.get("subject", name), "variant": job.get("variant", DEFAULT_VARIANT),
             "overrides": [(f"{where}: defaults", defaults.get("overrides")), (w, job.get("overrides"))],
         }))
@@ -173,7 +179,7 @@ def _expand_matrix(matrix: Any, defaults: dict, mw: str, where: str) -> list[tup
             out.append((w, {
                 "name": f"{sname}-{vname}" if isinstance(sname, str) else sname,
                 "data": subject.get("data"), "body": subject.get("body", defaults.get("body")),
-                "splits": splits, "subject": sname, "variant": vname,
+                "splits": splits, "eval_frames": defaults.get("eval_frames"), "subject": sname, "variant": vname,
                 "overrides": [(f"{where}: defaults", defaults.get("overrides")), (sw, subject.get("overrides")),
                               (vw, variant.get("overrides"))],
             }))
@@ -220,6 +226,10 @@ def _make_job(w: str, f: dict, base: Path) -> Job:
     if (not isinstance(splits, list) or not splits or not all(isinstance(s, str) and s for s in splits)
             or len(set(splits)) != len(splits)):
         raise UserError(f"{w}: splits: must be a non-empty list of distinct split names, got {splits!r}")
+    eval_frames = f["eval_frames"]
+    if eval_frames is not None and (not isinstance(eval_frames, int) or isinstance(eval_frames, bool)
+                                    or eval_frames < 1):
+        raise UserError(f"{w}: eval_frames: must be a whole number >= 1 (or null for all), got {eval_frames!r}")
     cfg = TrainConfig()
     for ow, overrides in f["overrides"]:
         if overrides is None:
@@ -233,7 +243,7 @@ def _make_job(w: str, f: dict, base: Path) -> Job:
     except UserError as exc:
         raise UserError(f"{w}: {exc}") from None
     return Job(name=name, subject=f["subject"], variant=f["variant"], data=data, body=body,
-               splits=splits, config=to_dict(cfg))
+               splits=splits, config=to_dict(cfg), eval_frames=eval_frames)
 
 
 def expand_switches(overrides: dict, where: str) -> dict:

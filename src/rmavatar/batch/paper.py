@@ -51,12 +51,14 @@ def zju_job_subject(subject: str) -> str:
 
 def paper_jobs(people_snapshot: str | Path | None, zju: str | Path | None, body: str, *,
                iters: int = PAPER_ITERS, size: int | None = None, tables=TABLES,
-               subjects: list[str] | None = None, extra: dict | None = None) -> dict:
+               subjects: list[str] | None = None, eval_frames: int | None = None) -> dict:
     """The JOBS.yaml document (a dict) for the paper's tables.
 
     people_snapshot / zju: folders holding the subjects (``male-3-casual/``...; ``CoreView_377/`` or
     ``my_377/``...); either may be None, and that dataset's tables are left out. tables: which of 1, 2, 4.
-    subjects: only these (PeopleSnapshot names or ZJU ids). extra: more overrides for every job.
+    subjects: only these (PeopleSnapshot names or ZJU ids). iters, size: the training budget (the
+    paper's 50,000 iterations at the datasets' own resolution by default). eval_frames: score only the
+    first N test frames (a quick look; the paper scores all).
     """
     tables = sorted(set(tables))
     bad = [t for t in tables if t not in TABLES]
@@ -76,8 +78,10 @@ def paper_jobs(people_snapshot: str | Path | None, zju: str | Path | None, body:
             raise UserError(f"--body {body}: {path} does not exist (an SMPL .pkl/.npz file, or a folder with "
                             "SMPL_NEUTRAL, SMPL_MALE and SMPL_FEMALE files)")
         body = f"smpl:{path}"
-    overrides = {"iters": iters, **({"size": size} if size is not None else {}), **(extra or {})}
+    overrides = {"iters": iters, **({"size": size} if size is not None else {})}
     doc = {"defaults": {"body": body, "splits": ["test"], "overrides": overrides}, "matrix": []}
+    if eval_frames is not None:
+        doc["defaults"]["eval_frames"] = eval_frames
     ps_variants = (["full"] if 1 in tables else []) + ([v for v in TABLE4 if v != "full"] if 4 in tables else [])
     if 4 in tables and "full" not in ps_variants:
         ps_variants.append("full")
@@ -207,7 +211,9 @@ def _setting(doc: dict) -> str:
     iters = sorted({r["iterations"] for r in jobs})
     res = sorted({tuple(m["resolution"]) for r in jobs for m in r["splits"].values()})
     bgs = sorted({m["background"] for r in jobs for m in r["splits"].values()})
+    partial = any(m["frames"] < m["frames_in_split"] for r in jobs for m in r["splits"].values())
     it = ", ".join(f"{i:,}" for i in iters) or "-"
     rs = ", ".join(f"{w}x{h}" for w, h in res) or "-"
+    frames = "ONLY THE FIRST FRAMES of each test split (--eval-frames), " if partial else ""
     return (f"{it} iterations (the paper: {PAPER_ITERS:,}), evaluated at {rs} on a {'/'.join(bgs) or '-'} "
-            "background, full images, no test-time pose refinement")
+            f"background, full images, {frames}no test-time pose refinement")

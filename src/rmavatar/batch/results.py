@@ -89,7 +89,8 @@ def markdown(doc: dict) -> str:
         if r["error"]:
             failures.append(f"- **{r['job']}**: {r['error']}")
     lines += ["", "Means per variant (finished jobs):", "",
-              "| variant | split | jobs | PSNR | SSIM | LPIPS | train s | Gaussians |", "|---|---|---|---|---|---|---|---|"]
+              "| variant | split | jobs | PSNR | SSIM | LPIPS | train s | Gaussians |",
+              "|---|---|---|---|---|---|---|---|"]
     for g in doc["by_variant"]:
         lines.append(f"| {g['variant']} | {g['split']} | {g['jobs']} | {_num(g['psnr'], 2)} | {_num(g['ssim'], 4)} | "
                      f"{_num(g['lpips'], 4)} | {_num(g['train_seconds'], 0)} | {_num(g['gaussians'], 0)} |")

@@ -218,18 +218,23 @@ class _JobRun:
 
         path = self.job_dir / f"eval_{split}.json"
         bg = cfg.background if cfg.background in ("white", "black") else "white"
+        frames = self.job.get("eval_frames")
         earlier = read_json(path)
-        if earlier and earlier.get("protocol", {}).get("iteration") == iteration and \
-                earlier["protocol"].get("background") == bg:
+        protocol = (earlier or {}).get("protocol", {})
+        wanted = protocol.get("frames_in_split") if frames is None else min(frames, protocol.get("frames_in_split", 0))
+        if earlier and protocol.get("iteration") == iteration and protocol.get("background") == bg and \
+                protocol.get("frames") == wanted:
             result = earlier
             print(f"eval {split}: reusing {path.name} (iteration {iteration})", flush=True)
         else:
-            result = evaluate_run(self.run_dir, split=split, bg=bg, device=self.device, progress=False)
+            result = evaluate_run(self.run_dir, split=split, bg=bg, device=self.device, max_frames=frames,
+                                  progress=False)
             write_json(path, result)
         mean = result["mean"]
         psnr = "inf" if mean["psnr"] is None else f"{mean['psnr']:.2f}"
         print(f"eval {split}: PSNR {psnr} SSIM {mean['ssim']:.4f} LPIPS {mean['lpips']:.4f} "
               f"over {result['protocol']['frames']} frames", flush=True)
         return {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"],
-                "frames": result["protocol"]["frames"], "resolution": result["protocol"]["resolution"],
+                "frames": result["protocol"]["frames"], "frames_in_split": result["protocol"]["frames_in_split"],
+                "resolution": result["protocol"]["resolution"],
                 "background": bg}

@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training iterations per job (default 50000, the paper's)")
     parser.add_argument("--size", type=int, default=None, metavar="S",
                         help="train and evaluate at this image size (longer side); default: the datasets' own")
+    parser.add_argument("--eval-frames", type=int, default=None, metavar="N",
+                        help="score only the first N frames of each test split (a quick look; default: all, "
+                        "as the paper)")
     parser.add_argument("--write-jobs", metavar="FILE",
                         help="only write the batch's JOBS.yaml to FILE (to edit and run with rmavatar batch)")
     add_cluster_arguments(parser)
@@ -62,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     if args.iters is not None and args.iters < 1:
         raise UserError(f"--iters must be >= 1, got {args.iters}")
     doc = paper_jobs(args.people_snapshot, args.zju, args.body, iters=args.iters or PAPER_ITERS,
-                     size=args.size, tables=args.tables, subjects=args.subjects)
+                     size=args.size, tables=args.tables, subjects=args.subjects, eval_frames=args.eval_frames)
     jobs = parse_jobs(doc, where="the paper's jobs")
     if args.write_jobs:
         check_writable_folder(Path(args.write_jobs).resolve(), f"--write-jobs {args.write_jobs}")
