@@ -138,6 +138,7 @@ class _Driver:
         self.started: set[str] = set()
         self.started_at = time.time()
         self.bar = None
+        self.stopping = False  # Ctrl-C: no more retries, collect what finishes
 
     def say(self, msg: str) -> None:
         line = f"[{time.strftime('%H:%M:%S')}] {msg}"
@@ -173,6 +174,8 @@ class _Driver:
         if self.options.progress:
             print("\n" + markdown(doc))
             print(f"wrote {self.root / 'results.md'}, results.csv and results.json; wall time {wall:.0f} s")
+        if self.stopping:
+            raise KeyboardInterrupt
         return doc
 
     # --- Ray ------------------------------------------------------------------------------------------
@@ -231,9 +234,9 @@ class _Driver:
                     else:
                         self.bar.update(1)
                 self._show(pending)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # a second one, while _cancel waits, stops at once
+            self.stopping = True
             self._cancel(ray, pending)
-            raise
         finally:
             self.bar.close()
             self.bar = None
@@ -251,7 +254,7 @@ class _Driver:
         except ray.exceptions.RayError as exc:  # the worker process or its node died
             reason = f"{type(exc).__name__}: {_short(exc)}"
             self.retries.setdefault(name, []).append(reason)
-            if attempt <= self.options.max_retries:
+            if attempt <= self.options.max_retries and not self.stopping:
                 self.say(f"{name}: worker died ({reason}); retry {attempt} of {self.options.max_retries}, "
                          "resuming from its last checkpoint")
                 return True
@@ -293,15 +296,21 @@ class _Driver:
                                  + (f" | {shown}" if shown else ""))
 
     def _cancel(self, ray, pending: dict) -> None:
-        """Ctrl-C: ask running jobs to stop (they checkpoint, as on Ctrl-C in rmavatar train), wait a while."""
+        """Ctrl-C: ask running jobs to stop (they checkpoint, as on Ctrl-C in rmavatar train), wait a while
+        for them, and record every job still pending as interrupted."""
         self.say(f"interrupted: stopping {len(pending)} job(s); they save a checkpoint, re-run to resume")
         for ref in pending:
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=False)
         deadline = time.monotonic() + CANCEL_WAIT_S
-        refs = list(pending)
-        while refs and time.monotonic() < deadline:
-            ready, refs = ray.wait(refs, num_returns=len(refs), timeout=1.0)
+        while pending and time.monotonic() < deadline:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=1.0)
+            for ref in ready:
+                job, attempt = pending.pop(ref)
+                self._collect(ray, ref, job, attempt)
+        for job, attempt in pending.values():
+            self.results[job.name] = self._synth(job, attempt, "interrupted", "still stopping when the batch "
+                                                 "gave up waiting; re-run to resume")
 
 
 def _init_ray(ray, address: str | None) -> None:
