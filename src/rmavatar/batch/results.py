@@ -95,7 +95,7 @@ def markdown(doc: dict) -> str:
         lines.append(f"| {g['variant']} | {g['split']} | {g['jobs']} | {_num(g['psnr'], 2)} | {_num(g['ssim'], 4)} | "
                      f"{_num(g['lpips'], 4)} | {_num(g['train_seconds'], 0)} | {_num(g['gaussians'], 0)} |")
     if failures:
-        lines += ["", "Errors:", "", *failures]
+        lines += ["", "Jobs that did not finish:", "", *failures]
     wall = doc.get("wall_seconds")
     lines += ["", f"Protocol: {doc['protocol']}."]
     if wall is not None:
