@@ -328,8 +328,10 @@ def _init_ray(ray, address: str | None) -> None:
     try:
         ray.init(address=address, runtime_env={"env_vars": env}, **kwargs)
     except ConnectionError as exc:
-        raise UserError(f"--address {address}: no Ray cluster there ({exc}); start one with 'ray start --head' "
-                        "or leave --address out to use this machine alone") from None
+        raise UserError(f"--address {address}: cannot join a Ray cluster there ({exc}); start one with 'ray start "
+                        "--head', or leave --address out to use this machine alone. A cluster with token "
+                        "authentication needs RAY_AUTH_MODE=token (and its token) in this command's environment, "
+                        "as any Ray client does") from None
 
 
 def _short(exc: BaseException) -> str:
