@@ -16,7 +16,7 @@ $(VENV)/.rmavatar-setup: pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip
 	# Keep a torch that is already there (e.g. a CUDA build); otherwise take the CPU build.
 	$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q -e ".[dev,cluster]"
 	$(PIP) install -q --no-deps $(NODEPS)
 	touch $@
 

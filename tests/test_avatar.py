@@ -149,8 +149,7 @@ def test_gaussians_move_rigidly_with_a_rigid_mesh():
 
 
 def test_rotated_sh_evaluates_like_local_sh_along_local_directions():
-    from rmavatar.render.project import rotate_sh, sh_rotation_matrices
-    from rmavatar.render.project import sh_to_rgb
+    from rmavatar.render.project import rotate_sh, sh_rotation_matrices, sh_to_rgb
 
     gen = torch.Generator().manual_seed(5)
     R = torch.stack([random_rotation(gen) for _ in range(6)])

@@ -7,6 +7,7 @@ import pytest
 
 from rmavatar.bench.quality import VARIANTS, format_table, run_quality, variant_config
 from rmavatar.commands import main
+from rmavatar.train.config import ABLATIONS
 from rmavatar.utils import UserError
 
 
@@ -18,7 +19,7 @@ def test_variants_flip_one_switch_each():
     assert variant_config("no_scaling_loss", "d", 64, 10, 0, 0, 1, "cpu").loss.scaling == 0.0
     with pytest.raises(UserError):
         variant_config("w/o everything", "d", 64, 10, 0, 0, 1, "cpu")
-    assert set(VARIANTS) == {"full", "no_rectifier", "no_offset_loss", "no_scaling_loss"}
+    assert set(VARIANTS) == {"full", "no_rectifier", "no_offset_loss", "no_scaling_loss"} == set(ABLATIONS)
 
 
 def test_tiny_quality_run(tmp_path):

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.avatar.trained import MARKER, body_signature, check_body, checkpoint_path, read_checkpoint
+from rmavatar.avatar.trained import (
+    MARKER,
+    body_signature,
+    check_body,
+    checkpoint_path,
+    read_checkpoint,
+)
 from rmavatar.commands.train import add_arguments, config_from_args
 from rmavatar.train import checkpoint as ck
 from rmavatar.train.config import TrainConfig, load_config, save_config

@@ -19,16 +19,18 @@ from pathlib import Path
 
 from rmavatar.utils import UserError, atomic_path, check_writable_folder
 
-VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss")
+VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss")  # rmavatar.train.config.ABLATIONS
 SPLITS = ("test", "novel_pose")
 
 
 def variant_config(variant: str, data: str, size: int, iters: int, seed: int, max_gaussians: int,
                    threads: int, device: str):
     """The TrainConfig of one variant: the paper's defaults with one switch flipped."""
-    from rmavatar.train import TrainConfig
+    from rmavatar.train.config import ABLATIONS, TrainConfig, apply_overrides
 
-    cfg = TrainConfig()
+    if variant not in ABLATIONS:
+        raise UserError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+    cfg = apply_overrides(TrainConfig(), ABLATIONS[variant])
     cfg.data.path = data
     cfg.data.size = size
     cfg.optim.iters = iters
@@ -36,14 +38,6 @@ def variant_config(variant: str, data: str, size: int, iters: int, seed: int, ma
     cfg.threads = threads
     cfg.device = device
     cfg.density.max_gaussians = max_gaussians
-    if variant == "no_rectifier":
-        cfg.model.rectifier = False
-    elif variant == "no_offset_loss":
-        cfg.loss.offset = 0.0
-    elif variant == "no_scaling_loss":
-        cfg.loss.scaling = 0.0
-    elif variant != "full":
-        raise UserError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
     return cfg
 
 

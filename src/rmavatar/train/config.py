@@ -10,18 +10,26 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 from rmavatar.avatar.model import AvatarConfig
 from rmavatar.train.density import DensityConfig
 from rmavatar.train.losses import LossConfig
 from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError
-from rmavatar.utils.config import from_dict, read_yaml, to_dict, write_yaml
+from rmavatar.utils.config import (
+    apply_overrides,
+    flatten,
+    from_dict,
+    read_yaml,
+    to_dict,
+    write_yaml,
+)
 
 BACKGROUNDS = ("white", "black", "random")
 
-__all__ = ["AvatarConfig", "DataConfig", "DensityConfig", "LogConfig", "LossConfig", "OptimConfig",
-           "TrainConfig", "from_dict", "load_config", "save_config", "to_dict"]
+__all__ = ["ABLATIONS", "AvatarConfig", "DataConfig", "DensityConfig", "LogConfig", "LossConfig", "OptimConfig",
+           "TrainConfig", "apply_overrides", "flatten", "from_dict", "load_config", "save_config", "to_dict"]
 
 
 @dataclass
@@ -88,3 +96,12 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
 def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
     """Write ``cfg`` as YAML atomically."""
     write_yaml(cfg, path)
+
+
+# The paper's ablations (§4.4) as dotted overrides: each flips exactly one switch of the full model.
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "full": {},
+    "no_rectifier": {"model.rectifier": False},  # "w/o GauRec": Gaussians fixed to their faces
+    "no_offset_loss": {"loss.offset": 0.0},  # "w/o OffsetLoss"
+    "no_scaling_loss": {"loss.scaling": 0.0},  # "w/o ScalingLoss"
+}

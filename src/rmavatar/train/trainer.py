@@ -17,6 +17,7 @@ import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -195,12 +196,15 @@ def train(
     data: str | None = None,
     overrides: list | None = None,
     progress: bool = True,
+    on_iteration: Callable[[int, int], None] | None = None,
 ) -> TrainResult:
     """Train an avatar into ``run_dir``.
 
     Fresh run: ``cfg`` is the full config. Resume: ``cfg`` is None, the run's checkpoint supplies the
     config; ``data`` (if given) must name the same dataset; ``overrides`` [(value, section, key)] may
-    change only the run length and logging, anything else that differs is an error.
+    change only the run length, logging, threads and device, anything else that differs is an error.
+    ``on_iteration(iteration, total)`` is called after every iteration, once any checkpoint of that
+    iteration is written (``rmavatar batch`` reports progress with it).
     """
     run_dir = Path(run_dir)
     if resume:
@@ -220,7 +224,7 @@ def train(
     load_dataset(cfg.data.path, size=cfg.data.size).num_frames(cfg.data.split)
     prepare_run_dir(run_dir, cfg.data.path, resume)
     save_config(cfg, run_dir / "config.yaml")
-    return Trainer(cfg, run_dir, ckpt, progress).run()
+    return Trainer(cfg, run_dir, ckpt, progress, on_iteration).run()
 
 
 def _resume_payload(run_dir: Path, data: str | None) -> dict:
@@ -233,7 +237,7 @@ def _resume_payload(run_dir: Path, data: str | None) -> dict:
     return payload
 
 
-_RESUME_CHANGEABLE = {("optim", "iters"), ("log", "checkpoint_every"), (None, "threads")}
+_RESUME_CHANGEABLE = {("optim", "iters"), ("log", "checkpoint_every"), (None, "threads"), (None, "device")}
 
 
 def _apply_resume_overrides(cfg: TrainConfig, overrides: list) -> None:
@@ -248,18 +252,21 @@ def _apply_resume_overrides(cfg: TrainConfig, overrides: list) -> None:
 
 
 class Trainer:
-    """One training run. ``checkpoint``: a payload from :func:`read_checkpoint` to resume from, or None.
+    """One training run. ``checkpoint``: a payload from :func:`read_checkpoint` to resume from, or None;
+    ``on_iteration(iteration, total)`` is called after every iteration, once any checkpoint of it is written.
 
     After :meth:`setup`: ``dataset``, ``body``, ``avatar`` (training mode), ``optimizer``, ``density``,
     ``vertices`` [n,V,3] / ``body_pose`` [n,69] / ``viewmats`` [n,4,4] / ``Ks`` [n,3,3] of the training
     frames (on ``device``), ``width``/``height``, ``iteration`` (steps done).
     """
 
-    def __init__(self, cfg: TrainConfig, run_dir: Path, checkpoint: dict | None = None, progress: bool = True):
+    def __init__(self, cfg: TrainConfig, run_dir: Path, checkpoint: dict | None = None, progress: bool = True,
+                 on_iteration: Callable[[int, int], None] | None = None):
         self.cfg = cfg
         self.run_dir = run_dir
         self.ckpt = checkpoint
         self.progress = progress
+        self.on_iteration = on_iteration
 
     # --- setup --------------------------------------------------------------------------------
     def setup(self) -> None:
@@ -418,12 +425,16 @@ class Trainer:
                                 f"non-finite loss or gradient; the last good model is saved in "
                                 f"{checkpoint_path(self.run_dir)} (try a lower learning rate or check the data)")
                         bar.update(1)
+                        if self.on_iteration:
+                            self.on_iteration(self.iteration, total)
                         continue
                     bad = 0
                     self.iteration += 1
                     self._report(out, writer, history, bar)
                     if self.iteration % cfg.log.checkpoint_every == 0 and self.iteration < total:
                         self.save()
+                    if self.on_iteration:
+                        self.on_iteration(self.iteration, total)
                     if stop.requested:
                         interrupted = True
                         break

@@ -102,3 +102,37 @@ def write_yaml(cfg: Any, path: str | os.PathLike) -> None:
 
     with atomic_path(path) as tmp:
         tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+
+
+def flatten(values: dict, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings -> dotted keys: {"optim": {"iters": 5}} -> {"optim.iters": 5}."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def apply_overrides(cfg: Any, overrides: dict[str, Any], where: str = "overrides") -> Any:
+    """A copy of the config dataclass ``cfg`` with dotted keys set (``{"optim.iters": 1000,
+    "model.rectifier": False}``; nested mappings work too), type-checked like a config file: errors
+    name ``where`` and the key."""
+    merged = to_dict(cfg)
+    sections = sorted(k for k, v in merged.items() if isinstance(v, dict))
+    for key, value in flatten(overrides).items():
+        *path, leaf = str(key).split(".")
+        node = merged
+        for depth, part in enumerate(path):
+            if not isinstance(node.get(part), dict):
+                head = ".".join(path[: depth + 1])
+                raise UserError(f"{where}: unknown key {key!r} ({head!r} is not a config section; sections: "
+                                f"{', '.join(sections)}; top-level keys: "
+                                f"{', '.join(k for k in merged if k not in sections)})")
+            node = node[part]
+        if isinstance(node.get(leaf), dict):
+            raise UserError(f"{where}: {key!r} is a config section, give one of its keys ({key}.KEY)")
+        node[leaf] = value
+    return from_dict(type(cfg), merged, where=where)
