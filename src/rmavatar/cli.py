@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("rmavatar.render.cli", "render a Gaussian scene (synthetic figure or 3DGS PLY) to a PNG"),
     "bench": ("rmavatar.bench.cli", "benchmarks: bench raster (rasterizer speed and memory)"),
     "synth": ("rmavatar.data.synth.cli", "render the synthetic clothed subject (turning in an A-pose, novel poses) into a native dataset"),
+    "capture": ("rmavatar.commands.capture", "your own video of one person -> a dataset with estimated poses (MediaPipe + body fit, offline)"),
 }
 
 

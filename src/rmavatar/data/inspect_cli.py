@@ -58,6 +58,7 @@ def summarize(ds) -> dict:
         "gender": ds.gender,
         "body": ds.body,
         "fps": ds.fps,
+        "pose_source": "estimated" if ds.poses_estimated else "given",
         "image_size": list(ds.image_size),
         "source_size": list(ds.source_size),
         "splits": {s: {"frames": len(idx), "first": idx[0], "last": idx[-1]} for s, idx in ds.splits.items()},
@@ -88,7 +89,8 @@ def _print(summary: dict) -> None:
     sw, sh = summary["source_size"]
     print(f"{summary['kind']}: {summary['name']}  ({summary['path']})")
     extra = f" (source {sw}x{sh})" if (sw, sh) != (w, h) else ""
-    print(f"  gender {summary['gender']}, body {summary['body']}, fps {summary['fps']}, image {w}x{h}{extra}")
+    print(f"  gender {summary['gender']}, body {summary['body']}, fps {summary['fps']}, image {w}x{h}{extra}, "
+          f"poses {summary['pose_source']}")
     for s, v in summary["splits"].items():
         print(f"  {s:<11} {v['frames']:>5} frames  (source frames {v['first']}..{v['last']})")
     c = summary["camera"]
