@@ -117,7 +117,10 @@ def test_limit_and_smooth_terms():
     assert float(F.limit_term(pose, lo, hi)) == pytest.approx(0.2**2 / 2)
     assert F.rest_pose().shape == (69,) and float(F.limit_term(F.rest_pose()[None].double(), lo, hi)) == 0.0
     x = torch.tensor([[0.0], [1.0], [3.0]])
-    assert float(F.smooth_term(x, torch.tensor([1.0, 2.0]))) == pytest.approx((1.0 + 1.0) / 2)
+    assert float(F.smooth_term(x, torch.tensor([1.0, 2.0]))) == 0.0  # 1 per frame throughout: steady
+    assert float(F.smooth_term(x, torch.tensor([1.0, 1.0]))) == pytest.approx(1.0)  # 1 then 2 per frame
+    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]])  # 1, then 2 per frame over 2 frames
+    assert float(F.smooth_term(x, torch.tensor([1.0, 2.0]))) == pytest.approx((1 / 1.5) ** 2)
 
 
 def test_landmarks_ride_on_their_segment(anny):
@@ -327,3 +330,23 @@ def test_capture_api_refuses_an_out_inside_the_input(tmp_path):
     Image.fromarray(np.zeros((64, 64, 3), np.uint8)).save(frames / "0.png")
     with pytest.raises(UserError, match="holds the input"):
         capture(frames, tmp_path, CaptureConfig(), progress=False)
+
+
+def test_proxy_follows_an_smpl_format_body_and_its_betas(tmp_path):
+    """The fit's stand-in on an SMPL-format file (random arrays with SMPL's shapes, as the SMPL tests
+    make them): joints exact for any betas, surface points up to the pose blend shapes."""
+    from test_body_smpl import random_smpl, save_npz
+
+    save_npz(random_smpl(10, seed=7), tmp_path / "m.npz")
+    body = load_body_model(f"smpl:{tmp_path / 'm.npz'}")
+    ids = torch.arange(0, 6890, 17)
+    proxy = BodyProxy(body, ids)
+    assert proxy.num_betas == 10
+    g = torch.Generator().manual_seed(8)
+    betas = torch.randn(1, 10, generator=g)
+    go, bp, tr = torch.randn(3, 3, generator=g), 0.3 * torch.randn(3, 69, generator=g), torch.randn(3, 3, generator=g)
+    with torch.no_grad():
+        joints, _, points = proxy(betas, go, bp, tr)
+        out = body(betas.expand(3, -1), go, bp, tr)
+    np.testing.assert_allclose(joints.numpy(), out.joints.numpy(), atol=2e-5)
+    assert float((points - out.vertices[:, ids]).norm(dim=-1).mean()) < 0.05

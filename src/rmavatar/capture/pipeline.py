@@ -135,7 +135,8 @@ def _detect(source, cfg: CaptureConfig, scratch: Path, progress: bool) -> tuple[
             clip.decoded += 1
             bar.update(1)
             det = detect(image)
-            if det is None:
+            rows = np.nonzero((det.mask > 0.5).any(1))[0] if det is not None else []
+            if len(rows) == 0:  # no pose, or a pose without a person's mask
                 clip.no_person.append(i)
                 continue
             if clip.decoded % OTHER_PERSON_EVERY == 1 and detect.another_person(image, det):
@@ -149,8 +150,7 @@ def _detect(source, cfg: CaptureConfig, scratch: Path, progress: bool) -> tuple[
             clip.visibility.append(det.visibility)
             clip.world.append(det.world)
             clip.small_masks.append(resample(det.mask, *small) > 0.5)
-            rows = np.nonzero((det.mask > 0.5).any(1))[0]
-            clip.heights.append(float(rows[-1] - rows[0] + 1) if len(rows) else 0.0)
+            clip.heights.append(float(rows[-1] - rows[0] + 1))
     return clip, size
 
 
@@ -179,7 +179,8 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     used = list(USED)
     w_small = clip.small_masks[0].shape[1]
     px = size[0] / w_small  # full-image pixels per small-mask pixel
-    outside = np.stack([ndimage.distance_transform_edt(~m) * px if m.any() else np.full(m.shape, 1e3)
+    # a mask too thin to survive the reduction leaves no foreground: every point then counts as inside
+    outside = np.stack([ndimage.distance_transform_edt(~m) * px if m.any() else np.zeros(m.shape)
                         for m in clip.small_masks]).astype(np.float32)  # fmt: skip
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     index = np.asarray(clip.index)
