@@ -7,9 +7,9 @@ person's height in the image so that weights do not depend on the resolution:
 
 - keypoints: Geman-McClure of the 2D reprojection error of the body's landmark points
   (:mod:`rmavatar.capture.landmarks`: joints plus measured offsets) against MediaPipe's landmarks,
-  weighted by visibility squared;
+  weighted by :func:`visibility_weight` (landmarks MediaPipe marks as hidden count for nothing);
 - directions: the body's 3D bone directions against those of MediaPipe's world landmarks (resolves
-  what 2D cannot: which way a limb points in depth), weighted by the bone's smaller visibility;
+  what 2D cannot: which way a limb points in depth), weighted by the smaller weight of its two ends;
 - silhouette: surface points of the body that project outside the person mask, by their squared
   distance to the mask (the body must lie inside the clothed silhouette; the converse would inflate it);
 - limits: joint angles past anatomical limits (a box on each joint's axis-angle components);
