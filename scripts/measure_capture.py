@@ -1,0 +1,130 @@
+"""Measure `rmavatar capture` on a synthetic subject whose true poses are known.
+
+    PYTHONPATH=src python scripts/measure_capture.py WORK [--size 256] [--seed 0] [--iters 1000]
+        [--skip-training] [--json OUT]
+
+Makes the subject (`rmavatar synth`, default 100 train + 30 test + 30 novel-pose frames), renders its
+turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view,
+and reports the fitted body against the truth per split: mean 2D joint error (% of the body's height
+in the image) and root-aligned 3D joint error (mm) over the 24 joints. Unless --skip-training, it then
+trains one avatar on the true poses and one on the captured data with the demo's config (--iters,
+max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's test and novel_pose splits
+(true poses, the run's own body). Everything goes under WORK; finished steps are reused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+
+def write_video(truth: Path, path: Path, frames: list[int], fps: float) -> None:
+    from rmavatar.animate.video import frame_writer
+    from rmavatar.data.io import read_image
+
+    first = read_image(truth / "images" / f"{frames[0]:05d}.png")
+    with frame_writer(path, fps, first.shape[1], first.shape[0]) as write:
+        for i in frames:
+            write((read_image(truth / "images" / f"{i:05d}.png") * 255 + 0.5).astype(np.uint8))
+
+
+def fit_errors(truth: Path, captured: Path, first: int) -> dict:
+    """Per split of the captured dataset: mean 2D joint error (% of height) and root-aligned 3D joint
+    error (mm) over the 24 joints; ``first`` is the synthetic frame the video started at."""
+    from rmavatar.body import load_body_model
+
+    true = np.load(truth / "smpl_true.npz")
+    cams = np.load(truth / "cameras.npz")
+    meta = yaml.safe_load((captured / "meta.yaml").read_text())
+    fit = np.load(captured / "smpl.npz")
+    K = np.load(captured / "cameras.npz")["K"]
+    src = np.load(captured / "capture.npz")["source_index"] + first
+    tbody = load_body_model(yaml.safe_load((truth / "meta.yaml").read_text())["body"])
+    fbody = load_body_model(meta["body"])
+    betas = torch.tensor(fit["betas"])[None].expand(len(src), -1) if fbody.num_betas else None
+    with torch.no_grad():
+        t = tbody(None, *(torch.tensor(true[k][src]) for k in ("global_orient", "body_pose", "transl")))
+        f = fbody(betas, *(torch.tensor(fit[k]) for k in ("global_orient", "body_pose", "transl")))
+    V = cams["viewmat"][src]
+    cam = lambda x: np.einsum("nij,nkj->nki", V[:, :3, :3], x.numpy()) + V[:, None, :3, 3]  # noqa: E731
+    jt, vt, jf = cam(t.joints), cam(t.vertices), f.joints.numpy()
+    Kt = cams["K"][src]
+    proj = lambda x, k: x[..., :2] / x[..., 2:] * k[..., None, [0, 1], [0, 1]] + k[..., None, :2, 2]  # noqa: E731
+    ys = proj(vt, Kt)[..., 1]
+    height = ys.max(1) - ys.min(1)
+    e2 = np.linalg.norm(proj(jt, Kt) - proj(jf, np.broadcast_to(K, Kt.shape)), axis=-1) / height[:, None] * 100
+    e3 = np.linalg.norm((jt - jt[:, :1]) - (jf - jf[:, :1]), axis=-1) * 1000
+    return {split: {"frames": len(idx), "joint_2d_percent_height": round(float(e2[idx].mean()), 3),
+                    "joint_3d_root_aligned_mm": round(float(e3[idx].mean()), 1)}
+            for split, idx in meta["splits"].items()}  # fmt: skip
+
+
+def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int) -> dict:
+    from rmavatar.evaluate import evaluate_run
+    from rmavatar.train import TrainConfig, train
+
+    if not (run / "checkpoints" / "last.pt").is_file():
+        cfg = TrainConfig()
+        cfg.data.path, cfg.data.size, cfg.optim.iters = str(data), size, iters
+        cfg.seed, cfg.density.max_gaussians = 0, 40_000
+        t = time.perf_counter()
+        train(cfg, run, progress=True)
+        print(f"trained {run} in {time.perf_counter() - t:.0f} s")
+    out = {}
+    for split in ("test", "novel_pose"):
+        res = evaluate_run(run, data=str(truth), split=split, progress=False)
+        out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("work")
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--iters", type=int, default=1000)
+    parser.add_argument("--skip-training", action="store_true")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+
+    from rmavatar.capture import CaptureConfig, capture
+    from rmavatar.data import load_dataset
+    from rmavatar.data.synth import SynthConfig, synthesize
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    truth = work / "truth"
+    if not (truth / "meta.yaml").is_file():
+        synthesize(truth, SynthConfig(size=args.size, seed=args.seed))
+    ds = load_dataset(truth)
+    fx = float(ds.camera("train", 0).K[0, 0])
+    fov = math.degrees(2 * math.atan(ds.image_size[0] / 2 / fx))
+    result = {"fov": fov, "fit": {}, "seconds_per_frame": {}}
+    clips = {"turn": ds.splits["train"] + ds.splits["test"], "novel": ds.splits["novel_pose"]}
+    for name, frames in clips.items():
+        video, out = work / f"{name}.mp4", work / f"captured_{name}"
+        if not video.is_file():
+            write_video(truth, video, frames, ds.fps or 7.5)
+        if not (out / "meta.yaml").is_file():
+            s = capture(video, out, CaptureConfig(fov=fov), progress=True)
+            result["seconds_per_frame"][name] = s["seconds_per_frame"]
+        result["fit"][name] = fit_errors(truth, out, frames[0])
+    print(json.dumps(result, indent=1))
+    if not args.skip_training:
+        result["avatar_true_poses"] = train_and_eval(truth, work / "run_true", truth, args.iters, args.size)
+        result["avatar_captured"] = train_and_eval(work / "captured_turn", work / "run_captured", truth,
+                                                   args.iters, args.size)
+        print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured")}, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

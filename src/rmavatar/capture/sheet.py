@@ -1,0 +1,87 @@
+"""The contact sheet of a capture: frames with the fitted body drawn over them, so a person sees at
+once whether the fit is right."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rmavatar.capture.landmarks import BONES, USED
+
+TILE_HEIGHT = 320
+PER_ROW = 6
+BODY_ALPHA = 0.5
+BODY_COLOUR = np.array([1.0, 0.6, 0.15])  # orange: stands out on most clothes and skin
+
+
+def body_overlay(image: np.ndarray, vertices_cam: np.ndarray, faces: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """image [H,W,3] float 0..1 with the mesh (camera-frame vertices [V,3], faces [F,3]) drawn over it,
+    z-buffered, shaded by the angle to the viewer, half transparent. Returns [H,W,3] float."""
+    from rmavatar.data.synth.raster import rasterize
+
+    h, w = image.shape[:2]
+    frags = rasterize(vertices_cam, faces, K, w, h, ss=1)
+    tri = vertices_cam[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-12
+    view = tri.mean(1)
+    view /= np.linalg.norm(view, axis=1, keepdims=True) + 1e-12
+    shade = 0.35 + 0.65 * np.abs((normal * view).sum(1))
+    covered = frags.face_id >= 0
+    colour = np.zeros((h, w, 3))
+    colour[covered] = shade[frags.face_id[covered], None] * BODY_COLOUR
+    a = covered[..., None] * BODY_ALPHA
+    return image * (1 - a) + colour * a
+
+
+def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, scratch: Path,
+                  count: int = 12) -> None:
+    """Write ``count`` frames spread over the clip: the fitted body over the frame, MediaPipe's
+    landmarks (green dots) and the body's landmark points joined as a skeleton (red)."""
+    import torch
+    from PIL import Image, ImageDraw
+
+    from rmavatar.capture.fit import project
+    from rmavatar.capture.landmarks import body_landmarks, joint_rotations
+    from rmavatar.data.io import read_image, resample
+
+    n = len(clip.index)
+    picks = sorted(set(np.linspace(0, n - 1, min(count, n)).round().astype(int).tolist()))
+    split_of = {i: s for s, idx in splits.items() for i in idx}
+    scale = min(1.0, TILE_HEIGHT / camera.height)
+    tw, th = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    small = camera.resized(tw, th)
+    K = small.K.astype(np.float64)
+    dev = body.faces.device
+    t = lambda key: torch.as_tensor(np.asarray(params[key])[picks], dtype=torch.float32, device=dev)  # noqa: E731
+    betas = None
+    if int(getattr(body, "num_betas", 0)):
+        betas = torch.as_tensor(params["betas"][None, : min(10, body.num_betas)], device=dev).expand(len(picks), -1)
+    with torch.no_grad():
+        go, bp = t("global_orient"), t("body_pose")
+        out = body(betas, go, bp, t("transl"))
+        points = body_landmarks(out.joints, joint_rotations(go, bp))
+        uv_body = project(points, torch.as_tensor(K, dtype=torch.float32, device=dev)).cpu().numpy()
+    vertices = out.vertices.cpu().numpy().astype(np.float64)
+    faces = body.faces.cpu().numpy()
+    rows = (len(picks) + PER_ROW - 1) // PER_ROW
+    pad = 14
+    sheet = Image.new("RGB", (PER_ROW * tw, rows * (th + pad)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    pos = {k: i for i, k in enumerate(USED)}
+    for slot, i in enumerate(picks):
+        image = resample(read_image(scratch / f"image{i:06d}.png"), tw, th)
+        tile = body_overlay(image, vertices[slot], faces, K)
+        x0, y0 = (slot % PER_ROW) * tw, (slot // PER_ROW) * (th + pad)
+        sheet.paste(Image.fromarray((np.clip(tile, 0, 1) * 255 + 0.5).astype(np.uint8)), (x0, y0 + pad))
+        off = np.array([x0, y0 + pad])
+        for a, b in BONES:
+            p, q = uv_body[slot, pos[a]] + off, uv_body[slot, pos[b]] + off
+            draw.line([tuple(p), tuple(q)], fill=(230, 30, 30), width=2)
+        for k in USED:
+            u, v = clip.keypoints[i][k] * scale + off
+            r = 2 if clip.visibility[i][k] > 0.5 else 1
+            draw.ellipse([u - r, v - r, u + r, v + r], fill=(20, 200, 60))
+        draw.text((x0 + 3, y0 + 1), f"{split_of.get(i, '?')} #{clip.index[i]}", fill=(0, 0, 0))
+    sheet.save(path)

@@ -1,0 +1,78 @@
+"""``rmavatar capture INPUT --out DATA``: your own video -> a dataset ``rmavatar train`` reads."""
+
+from __future__ import annotations
+
+import argparse
+
+DESCRIPTION = """\
+Turn a video of one person (or a folder of its frames) into a native dataset with estimated poses,
+offline: MediaPipe finds the person's mask and landmarks in every frame, the body (Anny by default)
+is fitted to all frames at once, and DATA gets the frames, masks, camera, SMPL-format poses, a
+train split and a held-out test tail, and contact_sheet.png: the fitted body drawn over frames of the
+clip. Look at it before training.
+
+Record: one person, the whole body in view, a static camera (on a tripod or propped up), turning
+slowly on the spot in an A-pose (arms lowered, away from the body), 20-60 seconds.
+
+examples:
+  rmavatar capture me.mp4 --out data/me                      # a phone video, default camera
+  rmavatar capture me.mov --out data/me --fov 65 --fps 10    # known field of view, 10 frames/s
+  rmavatar capture frames/ --out data/me --focal 1400 --size 1080
+  rmavatar capture me.mp4 --out data/me --body smpl:models/smpl/SMPL_NEUTRAL.pkl
+then:
+  rmavatar inspect data/me --overlay check.png
+  rmavatar train data/me --out runs/me
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = DESCRIPTION
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("input", metavar="INPUT",
+                        help="a video file (mp4, mov, avi, webm, mkv) or a folder of images (sorted by name)")
+    parser.add_argument("--out", required=True, metavar="DATA",
+                        help="the dataset folder to write (new, empty, or an earlier dataset, which is replaced)")
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--fov", type=float, metavar="DEGREES",
+                        help="the camera's horizontal field of view (across the frame's width)")
+    camera.add_argument("--focal", type=float, metavar="PIXELS",
+                        help="the focal length in pixels of the frames written (after --size)")
+    parser.add_argument("--body", default="anny", metavar="SPEC",
+                        help="body to fit: anny (default: the neutral preset), anny:PRESET (neutral, male, "
+                             "female, child) or smpl:PATH (SMPL betas are fitted too)")
+    parser.add_argument("--fps", type=float, default=None, metavar="N",
+                        help="keep at most N frames per second (default: every frame)")
+    parser.add_argument("--size", type=int, default=None, metavar="S",
+                        help="longer side of the frames written, in pixels (default: the video's)")
+    parser.add_argument("--test-fraction", type=float, default=0.2, metavar="F",
+                        help="the end of the clip held out as the test split (default 0.2)")
+    parser.add_argument("--iters", type=int, default=None, metavar="N",
+                        help="fitting iterations (default 400, after 100 to start)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rmavatar.capture import CaptureConfig, capture
+    from rmavatar.capture.fit import FitConfig
+    from rmavatar.utils import UserError
+
+    fit = FitConfig()
+    if args.iters is not None:
+        if args.iters < 1:
+            raise UserError(f"--iters must be >= 1, got {args.iters}")
+        fit.iters = args.iters
+    cfg = CaptureConfig(body=args.body, fov=args.fov, focal=args.focal, fps=args.fps, size=args.size,
+                        test_fraction=args.test_fraction, device=args.device, fit=fit)
+    s = capture(args.input, args.out, cfg, progress=not args.quiet)
+    dropped = len(s["no_person"]) + len(s["other_person"])
+    print(f"wrote {s['out']}: {s['frames']['train']} train + {s['frames']['test']} test frames of "
+          f"{s['camera']['width']}x{s['camera']['height']} (fx {s['camera']['fx']:.1f} px), body {s['body']}")
+    if dropped:
+        print(f"dropped {dropped} of {s['decoded']} frames: {len(s['no_person'])} without a person "
+              f"{s['no_person'][:10]}, {len(s['other_person'])} with another person {s['other_person'][:10]}")
+    t = s["seconds"]
+    print(f"{s['seconds_per_frame']:.2f} s per frame (finding the person {t['detect_seconds']:.1f} s, "
+          f"fitting {t['fit_seconds']:.1f} s, writing {t['write_seconds']:.1f} s)")
+    print(f"look at {s['out']}/contact_sheet.png, then: rmavatar train {s['out']} --out runs/NAME")
+    return 0

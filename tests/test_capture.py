@@ -1,0 +1,358 @@
+"""rmavatar capture: the fitting objective's pieces against independent references, the input reader,
+the camera, the dataset flag, and bad inputs (each a clear error naming the input, nothing left behind)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from rmavatar.body import SMPL_PARENTS, load_body_model
+from rmavatar.capture import fit as F
+from rmavatar.capture.detect import INSTALL_HINT, require_mediapipe
+from rmavatar.capture.frames import keep_frame, open_source, read_frames
+from rmavatar.capture.landmarks import (
+    LANDMARKS,
+    OFFSETS,
+    USED,
+    body_landmarks,
+    joint_rotations,
+)
+from rmavatar.capture.pipeline import CaptureConfig, capture, intrinsics
+from rmavatar.capture.proxy import BodyProxy
+from rmavatar.commands import main
+from rmavatar.data import Camera, NativeMeta, load_dataset, write_native
+from rmavatar.utils import UserError
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(scope="module")
+def anny():
+    return load_body_model("anny:neutral")
+
+
+# --- the objective's pieces -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_project_matches_camera_project(device):
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0, 160.5], [0, 480.0, 120.25], [0, 0, 1]])
+    pts = rng.normal(0, 0.5, (20, 3)) + [0, 0, 4]
+    ref = Camera(K, np.eye(4), 320, 240).project(pts)
+    ours = F.project(torch.tensor(pts, dtype=torch.float32, device=device), torch.tensor(K, dtype=torch.float32,
+                                                                                          device=device))
+    np.testing.assert_allclose(ours.cpu().numpy(), ref, atol=1e-3)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_translation_from_keypoints_recovers_the_translation(device):
+    rng = np.random.default_rng(1)
+    T, K_ = 5, 8
+    pts = torch.tensor(rng.normal(0, 0.4, (T, K_, 3)), dtype=torch.float64)
+    t_true = torch.tensor(rng.normal(0, 0.3, (T, 3)) + [0, 0, 3.5])
+    K = torch.tensor([[600.0, 0, 200], [0, 600, 300], [0, 0, 1]], dtype=torch.float64)
+    cam = pts + t_true[:, None]
+    uv = cam[..., :2] / cam[..., 2:] * 600 + torch.tensor([200.0, 300.0], dtype=torch.float64)
+    w = torch.ones(T, K_, dtype=torch.float64)
+    t = F.translation_from_keypoints(*(x.to(device) for x in (pts, uv, w, K)))
+    np.testing.assert_allclose(t.cpu().numpy(), t_true.numpy(), atol=1e-6)
+
+
+def test_orientation_from_world_recovers_the_rotation():
+    rots = Rotation.random(6, random_state=2)
+    canon = np.zeros((33, 3))
+    canon[23], canon[24] = [0.1, 0, 0], [-0.1, 0, 0]  # hips on the body's left / right (x)
+    canon[11], canon[12] = [0.18, 0.5, 0.02], [-0.18, 0.5, 0.02]  # shoulders above (y up)
+    world = np.einsum("nij,kj->nki", rots.as_matrix(), canon)
+    R = F.orientation_from_world(torch.tensor(world, dtype=torch.float64)).numpy()
+    err = (Rotation.from_matrix(R) * rots.inv()).magnitude()
+    # the shoulders sit 2 cm forward of the hips: the torso line leans by atan(0.02 / 0.5)
+    assert np.degrees(err).max() < math.degrees(math.atan(0.02 / 0.5)) + 1e-3
+
+
+def test_keypoint_term_equals_a_float64_reference():
+    rng = np.random.default_rng(3)
+    uv, kp = rng.normal(100, 20, (4, 6, 2)), rng.normal(100, 20, (4, 6, 2))
+    w = rng.random((4, 6))
+    h, sigma = 150.0, 0.05
+    r2 = (((uv - kp) / h) ** 2).sum(-1)
+    ref = ((w * r2 / (r2 + sigma**2)).sum(1) / w.sum(1)).mean()
+    ours = F.keypoint_term(torch.tensor(uv), torch.tensor(kp), torch.tensor(w), h, sigma)
+    assert float(ours) == pytest.approx(ref, rel=1e-9)
+
+
+def test_visibility_weight():
+    v = torch.tensor([0.0, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(F.visibility_weight(v, 0.5).numpy(), [0, 0, 0.25, 1])
+
+
+def test_silhouette_distance_sampling_against_brute_force():
+    H, W = 24, 32
+    mask = np.zeros((H, W), bool)
+    mask[6:18, 10:20] = True
+    outside = ndimage.distance_transform_edt(~mask)
+    fg = np.argwhere(mask)
+    for r, c in [(0, 0), (3, 25), (12, 5), (20, 31), (10, 12)]:
+        assert outside[r, c] == pytest.approx(np.sqrt(((fg - [r, c]) ** 2).sum(1)).min())
+    # sampling at pixel centres returns the map's values (full image twice the map's resolution)
+    rows, cols = np.array([0, 3, 12, 20]), np.array([0, 25, 5, 31])
+    uv = torch.tensor(np.stack([(cols + 0.5) * 2, (rows + 0.5) * 2], 1), dtype=torch.float32)[None]
+    got = F.sample_map(torch.tensor(outside, dtype=torch.float32)[None], uv, (2 * W, 2 * H))
+    np.testing.assert_allclose(got[0].numpy(), outside[rows, cols], atol=1e-5)
+    # inside the mask the term is zero, outside it grows with the distance
+    inside = torch.tensor([[[30.0, 24.0]]])
+    far = torch.tensor([[[2.0, 2.0]]])
+    maps = torch.tensor(outside, dtype=torch.float32)[None]
+    assert float(F.silhouette_term(inside, maps, (2 * W, 2 * H), 40.0, 0.05)) == 0.0
+    assert float(F.silhouette_term(far, maps, (2 * W, 2 * H), 40.0, 0.05)) > 0.5
+
+
+def test_limit_and_smooth_terms():
+    lo, hi = F.limit_bounds(torch.float64)
+    pose = torch.zeros(2, 69, dtype=torch.float64)
+    assert float(F.limit_term(pose, lo, hi)) == 0.0
+    knee = 3 * (4 - 1)  # left knee, x: bending backwards by 0.25 rad is 0.2 past its -0.05 limit
+    pose[0, knee] = -0.25
+    assert float(F.limit_term(pose, lo, hi)) == pytest.approx(0.2**2 / 2)
+    assert F.rest_pose().shape == (69,) and float(F.limit_term(F.rest_pose()[None].double(), lo, hi)) == 0.0
+    x = torch.tensor([[0.0], [1.0], [3.0]])
+    assert float(F.smooth_term(x, torch.tensor([1.0, 2.0]))) == 0.0  # 1 per frame throughout: steady
+    assert float(F.smooth_term(x, torch.tensor([1.0, 1.0]))) == pytest.approx(1.0)  # 1 then 2 per frame
+    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]])  # 1, then 2 per frame over 2 frames
+    assert float(F.smooth_term(x, torch.tensor([1.0, 2.0]))) == pytest.approx((1 / 1.5) ** 2)
+
+
+def test_landmarks_ride_on_their_segment(anny):
+    """X_k = J_anchor + G_frame offset_k, G composed independently with scipy down SMPL's chain."""
+    g = torch.Generator().manual_seed(4)
+    go, bp = 0.5 * torch.randn(3, 3, generator=g), 0.4 * torch.randn(3, 69, generator=g)
+    with torch.no_grad():
+        out = anny(None, go, bp, torch.zeros(3, 3))
+        X = body_landmarks(out.joints, joint_rotations(go, bp)).numpy()
+    rv = torch.cat([go, bp], 1).reshape(3, 24, 3).numpy()
+    for n in range(3):
+        G = [None] * 24
+        for j in range(24):
+            local = Rotation.from_rotvec(rv[n, j])
+            G[j] = local if SMPL_PARENTS[j] < 0 else G[SMPL_PARENTS[j]] * local
+        for i, k in enumerate(USED):
+            _, anchor, frame = LANDMARKS[k]
+            ref = out.joints[n, anchor].numpy() + G[frame].apply(np.array(OFFSETS[k]))
+            np.testing.assert_allclose(X[n, i], ref, atol=1e-5)
+
+
+def test_proxy_poses_like_the_body(anny):
+    ids = F.surface_points(anny, 0.05)
+    assert 300 < len(ids) < 2000 and len(set(ids.tolist())) == len(ids)
+    proxy = BodyProxy(anny, ids)
+    g = torch.Generator().manual_seed(5)
+    go, bp, tr = torch.randn(4, 3, generator=g), 0.3 * torch.randn(4, 69, generator=g), torch.randn(4, 3, generator=g)
+    with torch.no_grad():
+        joints, rotations, points = proxy(None, go, bp, tr)
+        out = anny(None, go, bp, tr)
+    np.testing.assert_allclose(joints.numpy(), out.joints.numpy(), atol=2e-5)
+    np.testing.assert_allclose(rotations.numpy(), joint_rotations(go, bp).numpy(), atol=1e-5)
+    err = (points - out.vertices[:, ids]).norm(dim=-1)
+    assert float(err.mean()) < 0.004 and float(err.max()) < 0.06
+    assert torch.allclose(proxy.weights.sum(1), torch.ones(len(ids)), atol=0.02)
+
+
+# --- camera, frames, flags ----------------------------------------------------------------------------
+
+def test_intrinsics():
+    K = intrinsics(640, 480, fov=90)
+    assert K[0, 0] == pytest.approx(320) and K[1, 1] == pytest.approx(320)
+    assert (K[0, 2], K[1, 2]) == (320, 240)
+    assert intrinsics(640, 480, focal=700)[0, 0] == 700
+    assert intrinsics(1080, 1920)[0, 0] == pytest.approx(0.8 * 1920)
+    with pytest.raises(UserError, match="field of view"):
+        intrinsics(640, 480, focal=2)
+    for fov in (0, 200, float("nan")):
+        with pytest.raises(UserError, match="--fov"):
+            CaptureConfig(fov=fov).check()
+
+
+def test_keep_frame_subsamples_evenly():
+    assert [i for i in range(12) if keep_frame(i, 30.0, 10.0)] == [0, 3, 6, 9]
+    assert sum(keep_frame(i, 30.0, 7.5) for i in range(300)) == 75
+    assert all(keep_frame(i, 25.0, None) for i in range(10))
+    assert all(keep_frame(i, 25.0, 60.0) for i in range(10))
+
+
+def _write_video(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> None:
+    from rmavatar.animate.video import frame_writer
+
+    h, w = frames[0].shape[:2]
+    with frame_writer(path, fps, w, h) as write:
+        for f in frames:
+            write(f)
+
+
+def test_read_frames_video_and_folder(tmp_path):
+    from PIL import Image
+
+    frames = [np.full((48, 64, 3), 20 * i, np.uint8) for i in range(9)]
+    _write_video(tmp_path / "v.mp4", frames, fps=9.0)
+    src = open_source(tmp_path / "v.mp4")
+    assert src.kind == "video" and src.size == (64, 48) and src.fps == pytest.approx(9.0)
+    got = list(read_frames(src, size=32, fps=3.0))
+    assert [i for i, _ in got] == [0, 3, 6] and got[0][1].shape == (24, 32, 3)
+    assert abs(int(got[1][1].mean()) - 60) <= 3  # frame 3 decoded (lossy H.264)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames[:4]):
+        Image.fromarray(f).save(folder / f"f{i:03d}.png")
+    (folder / "notes.txt").write_text("not an image")
+    src = open_source(folder)
+    got = list(read_frames(src))
+    assert src.kind == "folder" and len(got) == 4 and got[2][1][0, 0, 0] == 40
+
+
+def test_native_poses_flag(tmp_path):
+    n = 2
+    params = {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
+              "transl": np.zeros((n, 3))}
+    cam = Camera(np.diag([50.0, 50.0, 1.0]) + [[0, 0, 8], [0, 0, 8], [0, 0, 0]], np.eye(4), 16, 16)
+    imgs = [np.zeros((16, 16, 3), np.uint8)] * n
+    masks = [np.zeros((16, 16), np.uint8)] * n
+    for flag in (False, True):
+        root = tmp_path / f"d{flag}"
+        write_native(root, NativeMeta(name="x", splits={"train": [0, 1]}, poses_estimated=flag), cam, params,
+                     imgs, masks, progress=False)
+        assert (f"poses: {'estimated' if flag else 'given'}") in (root / "meta.yaml").read_text()
+        assert load_dataset(root).poses_estimated is flag
+    text = (tmp_path / "dTrue" / "meta.yaml").read_text().replace("poses: estimated", "poses: guessed")
+    (tmp_path / "dTrue" / "meta.yaml").write_text(text)
+    with pytest.raises(UserError, match="poses must be one of"):
+        load_dataset(tmp_path / "dTrue")
+
+
+def test_without_mediapipe_the_error_says_what_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # makes `import mediapipe` fail
+    with pytest.raises(UserError) as info:
+        require_mediapipe()
+    assert "pip install --no-deps mediapipe==0.10.21" in str(info.value)
+    assert "rmavatar[capture]" in str(info.value) and INSTALL_HINT in str(info.value)
+
+
+# --- bad inputs, end to end through the command --------------------------------------------------------
+
+def _run_fails(capsys, args, *needles):
+    assert main(["capture", *args, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+def _nothing_left(parent: Path, out: Path, before: set) -> None:
+    assert not out.exists()
+    assert set(parent.iterdir()) == before, "temporary files left behind"
+
+
+def test_bad_files_and_folders(tmp_path, capsys):
+    out = tmp_path / "out"
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    (tmp_path / "no_images").mkdir()
+    (tmp_path / "no_images" / "readme.txt").write_text("x")
+    before = set(tmp_path.iterdir())
+    _run_fails(capsys, [str(tmp_path / "missing.mp4"), "--out", str(out)], "missing.mp4", "does not exist")
+    _run_fails(capsys, [str(empty), "--out", str(out)], "empty.mp4")
+    _run_fails(capsys, [str(junk), "--out", str(out)], "junk.mp4", "cannot read video")
+    _run_fails(capsys, [str(tmp_path / "no_images"), "--out", str(out)], "no_images", "holds no images")
+    _nothing_left(tmp_path, out, before)
+
+
+def test_wrong_camera_and_options(tmp_path, capsys):
+    frames = [np.full((64, 64, 3), 128, np.uint8)] * 3
+    _write_video(tmp_path / "v.mp4", frames)
+    out = tmp_path / "out"
+    before = set(tmp_path.iterdir())
+    for fov in ("0", "200"):
+        _run_fails(capsys, [str(tmp_path / "v.mp4"), "--out", str(out), "--fov", fov], f"--fov {fov}")
+    _run_fails(capsys, [str(tmp_path / "v.mp4"), "--out", str(out), "--focal", "-5"], "--focal")
+    _run_fails(capsys, [str(tmp_path / "v.mp4"), "--out", str(out), "--size", "10"], "--size")
+    (tmp_path / "user_stuff").mkdir()
+    (tmp_path / "user_stuff" / "keep.txt").write_text("mine")
+    _run_fails(capsys, [str(tmp_path / "v.mp4"), "--out", str(tmp_path / "user_stuff")], "refusing to replace")
+    assert (tmp_path / "user_stuff" / "keep.txt").read_text() == "mine"
+    _nothing_left(tmp_path, out, before | {tmp_path / "user_stuff"})
+
+
+def test_a_video_without_a_person(tmp_path, capsys):
+    pytest.importorskip("mediapipe")
+    rng = np.random.default_rng(0)
+    wall = (rng.integers(90, 140, (1, 96, 96, 1)) * np.ones((6, 1, 1, 3))).astype(np.uint8)  # a plain wall
+    _write_video(tmp_path / "wall.mp4", list(wall))
+    out = tmp_path / "out"
+    before = set(tmp_path.iterdir())
+    _run_fails(capsys, [str(tmp_path / "wall.mp4"), "--out", str(out)], "wall.mp4", "no person found in 6 of 6")
+    _nothing_left(tmp_path, out, before)
+
+
+def test_two_people_are_refused(tmp_path, capsys, two_people_video):
+    out = tmp_path / "out"
+    before = set(tmp_path.iterdir())
+    _run_fails(capsys, [str(two_people_video), "--out", str(out)], "two.mp4", "more than one person")
+    _nothing_left(tmp_path, out, before)
+
+
+@pytest.fixture(scope="module")
+def two_people_video(tmp_path_factory):
+    """Two synthetic subjects side by side in every frame."""
+    pytest.importorskip("mediapipe")
+    from rmavatar.data.synth import SynthConfig, synthesize
+
+    root = tmp_path_factory.mktemp("two")
+    a, b = root / "a", root / "b"
+    synthesize(a, SynthConfig(size=128, seed=0, train=4, test=1, novel_pose=0, ss=1), progress=False)
+    synthesize(b, SynthConfig(size=128, seed=3, preset="male", train=4, test=1, novel_pose=0, ss=1), progress=False)
+    ds_a, ds_b = load_dataset(a), load_dataset(b)
+    frames = []
+    for i in range(5):
+        left = ds_a.frame("train" if i < 4 else "test", min(i, 3) if i < 4 else 0).image
+        right = ds_b.frame("train" if i < 4 else "test", min(i, 3) if i < 4 else 0).image
+        frames.append((np.concatenate([left, right], 1) * 255 + 0.5).astype(np.uint8))
+    path = root / "two.mp4"
+    _write_video(path, frames)
+    return path
+
+
+def test_capture_api_refuses_an_out_inside_the_input(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    from PIL import Image
+
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8)).save(frames / "0.png")
+    with pytest.raises(UserError, match="holds the input"):
+        capture(frames, tmp_path, CaptureConfig(), progress=False)
+
+
+def test_proxy_follows_an_smpl_format_body_and_its_betas(tmp_path):
+    """The fit's stand-in on an SMPL-format file (random arrays with SMPL's shapes, as the SMPL tests
+    make them): joints exact for any betas, surface points up to the pose blend shapes."""
+    from test_body_smpl import random_smpl, save_npz
+
+    save_npz(random_smpl(10, seed=7), tmp_path / "m.npz")
+    body = load_body_model(f"smpl:{tmp_path / 'm.npz'}")
+    ids = torch.arange(0, 6890, 17)
+    proxy = BodyProxy(body, ids)
+    assert proxy.num_betas == 10
+    g = torch.Generator().manual_seed(8)
+    betas = torch.randn(1, 10, generator=g)
+    go, bp, tr = torch.randn(3, 3, generator=g), 0.3 * torch.randn(3, 69, generator=g), torch.randn(3, 3, generator=g)
+    with torch.no_grad():
+        joints, _, points = proxy(betas, go, bp, tr)
+        out = body(betas.expand(3, -1), go, bp, tr)
+    np.testing.assert_allclose(joints.numpy(), out.joints.numpy(), atol=2e-5)
+    assert float((points - out.vertices[:, ids]).norm(dim=-1).mean()) < 0.05
