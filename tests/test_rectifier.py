@@ -78,6 +78,14 @@ def test_only_local_offsets_turn_with_the_body(design):
         assert not same[0] and not same[1]
 
 
+@pytest.mark.parametrize("design", ["paper", "local"])
+def test_rest_means_are_the_gaussians_on_the_rest_mesh(design):
+    gen = torch.Generator().manual_seed(7)
+    body = ToyBody()
+    av = make_avatar(body, design, gen)
+    assert torch.allclose(av.rest_means(), av.posed(body.v_template.double())[0], atol=1e-12)
+
+
 def test_local_offsets_are_in_units_of_the_triangle_scale():
     gen = torch.Generator().manual_seed(1)
     body = ToyBody()

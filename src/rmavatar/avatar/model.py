@@ -179,6 +179,12 @@ class Avatar(nn.Module):
         # Half the rest mesh's bounding-box diagonal: the "scene size" density control measures against.
         self.register_buffer("rest_extent", 0.5 * torch.linalg.vector_norm(v_template.amax(0) - v_template.amin(0)))
         self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
+        # Rest-mesh frames of the binding faces (rest_means: the local rectifier's input); rebuilt from
+        # the body, not stored.
+        R, w, M = triangle_frames(v_template, faces[binding_faces])
+        self.register_buffer("rest_frames", R, persistent=False)
+        self.register_buffer("rest_scales", w, persistent=False)
+        self.register_buffer("rest_centroids", M, persistent=False)
 
         face_ids, means, log_scales = self._initial_layout(v_template, config, seed)
         n = face_ids.shape[0]
@@ -197,7 +203,7 @@ class Avatar(nn.Module):
             self._init_local(v_template, joint_weights, config.rectifier_mask_threshold)
 
     def _init_local(self, v_template, joint_weights, threshold):
-        """The local rectifier's pose masks and the rest-pose frames its input is measured in."""
+        """The local rectifier's pose masks (which pose values each face's Gaussians see)."""
         if joint_weights is None:
             raise UserError("model.rectifier 'local' needs the body model's skinning weights (joint_weights)")
         jw = torch.as_tensor(joint_weights, dtype=torch.float32)
@@ -209,10 +215,6 @@ class Avatar(nn.Module):
         masks, group = torch.unique(seen, dim=0, return_inverse=True)
         self.register_buffer("pose_masks", masks.repeat_interleave(3, dim=1).float())
         self.register_buffer("face_pose_group", group)
-        R, w, M = triangle_frames(v_template, self.faces[self.binding_faces])
-        self.register_buffer("rest_frames", R, persistent=False)
-        self.register_buffer("rest_scales", w, persistent=False)
-        self.register_buffer("rest_centroids", M, persistent=False)
 
     # ------------------------------------------------------------------ construction
     def checkpoint_state(self) -> dict:
