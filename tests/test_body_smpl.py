@@ -155,6 +155,8 @@ def test_folder_and_gender(tmp_path, files):
     assert female.file.name == "SMPL_FEMALE.pkl"
     assert np.allclose(female.v_template.numpy(), model["v_template"], atol=1e-6)
     assert load_body_model(f"smpl:{tmp_path}").file.name == "SMPL_NEUTRAL.npz"
+    # the local rectifier's pose masks read the file's own skinning weights
+    np.testing.assert_array_equal(female.joint_weights().numpy(), np.asarray(model["weights"], np.float32))
     with pytest.raises(UserError, match="no male SMPL model"):
         load_body_model(f"smpl:{tmp_path}", gender="male")
 

@@ -41,8 +41,11 @@ def test_a_v1_checkpoint_is_migrated(run_v1):
     raw = torch.load(checkpoint_path(run_v1), map_location="cpu", weights_only=True)
     assert raw["version"] == 1 and "seed" in raw["avatar"]["config"] and "betas" not in raw
     payload = read_checkpoint(checkpoint_path(run_v1))
-    assert payload["version"] == CHECKPOINT_VERSION == 2
+    assert payload["version"] == CHECKPOINT_VERSION == 3
     assert "seed" not in payload["avatar"]["config"] and payload["betas"] is None
+    # v2 -> v3: the on/off rectifier switch became the design's name
+    assert raw["avatar"]["config"]["rectifier"] is True and raw["config"]["model"]["rectifier"] is True
+    assert payload["avatar"]["config"]["rectifier"] == payload["config"]["model"]["rectifier"] == "paper"
     # everything else is carried over untouched
     assert payload["iteration"] == raw["iteration"] == 1
     for name, t in raw["avatar"]["state_dict"].items():

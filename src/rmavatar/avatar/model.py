@@ -4,6 +4,9 @@ Every Gaussian belongs to one triangle (``face_ids``) and stores its attributes 
 local frame (units of the triangle scale w). Posing is a similarity transform per triangle:
 mu* = w R mu + M, r* = quat(R) (x) r, s* = w exp(log_scale); the rectifier then adds
 pose-dependent offsets: mu' = mu* + d_mu, r' = r* (x) normalize(1 + d_r), s' = s* + d_s.
+The paper's rectifier reads the posed position and the whole pose and gives d_mu, d_s in world units;
+the "local" one reads the rest-pose position and the pose of the joints that skin the Gaussian's
+triangle, and gives d_mu = w R d, d_s = w d' from outputs d, d' in the triangle's frame.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
 
+RECTIFIERS = ("paper", "local")  # model.rectifier designs (False: no rectifier)
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
 
 # The per-Gaussian parameters, in the order density control and checkpoints see them.
@@ -38,7 +42,14 @@ class AvatarConfig:
     body: str | None = None  # "anny", "anny:PRESET", "smpl:PATH"; None = the dataset's own preset/gender
     gender: str | None = None  # None = the dataset's gender
     sh_degree: int = 3  # highest SH degree stored (0..3)
-    rectifier: bool = True  # False = the paper's "w/o GauRec": Gaussians fixed to their faces
+    # "paper": F(gamma(posed world position), all 69 pose values) -> world-space offsets (paper §3.3);
+    # "local": F(gamma(rest-pose position), the pose of the joints skinning the Gaussian's triangle) ->
+    # offsets in the triangle's frame, in units of its scale w, so they turn and grow with the body;
+    # False = the paper's "w/o GauRec": Gaussians fixed to their faces. True (older configs) = "paper".
+    rectifier: bool | str = "paper"
+    # "local": a face's Gaussians see joint j's pose when j's skinning weight on one of the face's
+    # corners exceeds this (Anny: ~1.6 of the 23 body joints per face).
+    rectifier_mask_threshold: float = 0.01
     num_freqs: int = 6
     hidden: int = 128
     # Arithmetic of the rectifier's hidden layers: "bfloat16" runs its GEMMs ~4x faster on CPUs with
@@ -71,6 +82,13 @@ class AvatarConfig:
             raise UserError("model.placement 'area' needs model.num_gaussians (the total Gaussian budget)")
         if not 0.0 < self.init_opacity < 1.0:
             raise UserError(f"model.init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.rectifier is True:
+            self.rectifier = "paper"
+        if self.rectifier is not False and self.rectifier not in RECTIFIERS:
+            raise UserError(f"model.rectifier must be one of {', '.join(RECTIFIERS)} or false (no rectifier), "
+                            f"not {self.rectifier!r}")
+        if not 0.0 <= self.rectifier_mask_threshold < 1.0:
+            raise UserError(f"model.rectifier_mask_threshold must be in [0, 1), got {self.rectifier_mask_threshold}")
         if self.num_freqs < 1:
             raise UserError(f"model.num_freqs must be >= 1, got {self.num_freqs}")
         if self.rectifier_precision not in ("float32", "bfloat16"):
@@ -81,9 +99,15 @@ class AvatarConfig:
         return self
 
     def build(self, body, seed: int = 0, init_colors=None) -> "Avatar":
-        """The avatar on ``body`` (a BodyModel: its faces, binding_faces, v_template); ``seed`` draws the
-        in-triangle positions of area placement; ``init_colors`` [3] or [F,3] per face."""
-        return Avatar(body.faces, getattr(body, "binding_faces", None), body.v_template, self, init_colors, seed=seed)
+        """The avatar on ``body`` (a BodyModel: its faces, binding_faces, v_template, and joint_weights
+        for the local rectifier); ``seed`` draws the in-triangle positions of area placement;
+        ``init_colors`` [3] or [F,3] per face."""
+        return Avatar(body.faces, getattr(body, "binding_faces", None), body.v_template, self, init_colors,
+                      seed=seed, joint_weights=self.body_joint_weights(body))
+
+    def body_joint_weights(self, body) -> torch.Tensor | None:
+        """What the avatar needs of ``body``'s skinning weights: [V,24] for the local rectifier, else None."""
+        return body.joint_weights() if self.rectifier == "local" else None
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -118,7 +142,9 @@ class Avatar(nn.Module):
     sh_dc [N,1,3], sh_rest [N,K-1,3]. Buffers: face_ids [N] (index into ``faces``), faces [F,3],
     binding_faces [Fb], rest_face_scale [F] (w of every face on ``v_template``), rest_extent (half the
     rest mesh's bounding-box diagonal),
-    active_sh_degree (grows during training like 3DGS).
+    active_sh_degree (grows during training like 3DGS). With the local rectifier (``joint_weights``
+    [V,24], the body's skinning weights per SMPL joint, required): pose_masks [U,69] (the distinct
+    sets of pose values faces see) and face_pose_group [F] (every face's row of pose_masks).
     """
 
     def __init__(
@@ -129,6 +155,7 @@ class Avatar(nn.Module):
         config: AvatarConfig | None = None,
         init_colors: torch.Tensor | None = None,
         seed: int = 0,
+        joint_weights: torch.Tensor | None = None,
     ):
         super().__init__()
         config = (config or AvatarConfig()).validate()
@@ -152,6 +179,12 @@ class Avatar(nn.Module):
         # Half the rest mesh's bounding-box diagonal: the "scene size" density control measures against.
         self.register_buffer("rest_extent", 0.5 * torch.linalg.vector_norm(v_template.amax(0) - v_template.amin(0)))
         self.register_buffer("active_sh_degree", torch.tensor(0, dtype=torch.long))
+        # Rest-mesh frames of the binding faces (rest_means: the local rectifier's input); rebuilt from
+        # the body, not stored.
+        R, w, M = triangle_frames(v_template, faces[binding_faces])
+        self.register_buffer("rest_frames", R, persistent=False)
+        self.register_buffer("rest_scales", w, persistent=False)
+        self.register_buffer("rest_centroids", M, persistent=False)
 
         face_ids, means, log_scales = self._initial_layout(v_template, config, seed)
         n = face_ids.shape[0]
@@ -166,6 +199,22 @@ class Avatar(nn.Module):
         self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).unsqueeze(1))
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
         self.rectifier = Rectifier(config.num_freqs, config.hidden, precision=config.rectifier_precision) if config.rectifier else None
+        if config.rectifier == "local":
+            self._init_local(v_template, joint_weights, config.rectifier_mask_threshold)
+
+    def _init_local(self, v_template, joint_weights, threshold):
+        """The local rectifier's pose masks (which pose values each face's Gaussians see)."""
+        if joint_weights is None:
+            raise UserError("model.rectifier 'local' needs the body model's skinning weights (joint_weights)")
+        jw = torch.as_tensor(joint_weights, dtype=torch.float32)
+        if jw.shape != (self.num_vertices, 24):
+            raise UserError(f"joint_weights must be [V={self.num_vertices},24], got {tuple(jw.shape)}")
+        # Joint 0 is the global orientation, not part of the 69 pose values (and a local rectifier
+        # must not depend on which way the body faces).
+        seen = jw.to(self.faces.device)[self.faces].amax(1)[:, 1:] > threshold  # [F,23]
+        masks, group = torch.unique(seen, dim=0, return_inverse=True)
+        self.register_buffer("pose_masks", masks.repeat_interleave(3, dim=1).float())
+        self.register_buffer("face_pose_group", group)
 
     # ------------------------------------------------------------------ construction
     def checkpoint_state(self) -> dict:
@@ -188,7 +237,7 @@ class Avatar(nn.Module):
                 f"than the body model given ({body_faces.shape[0]} faces)"
             )
         avatar = cls(body.faces, getattr(body, "binding_faces", None), body.v_template,
-                     dataclasses.replace(config, placement="face"))
+                     dataclasses.replace(config, placement="face"), joint_weights=config.body_joint_weights(body))
         avatar.config = config
         try:
             avatar.load_state_dict(sd)
@@ -258,9 +307,16 @@ class Avatar(nn.Module):
         """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3]."""
         return self._posed(vertices)[:3]
 
+    def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
+        """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
+        from ``_posed`` (computed when None)."""
+        slot = self._face_slot() if slot is None else slot
+        R, w, M = self.rest_frames[slot], self.rest_scales[slot], self.rest_centroids[slot]
+        return w.unsqueeze(-1) * (R @ self.means.unsqueeze(-1)).squeeze(-1) + M
+
     def _posed(self, vertices: torch.Tensor):
-        """mu*, r*, s* and the frames they came from: R [Fb,3,3] of the binding faces and every
-        Gaussian's index into them, slot [N]."""
+        """mu*, r*, s* and the frames they came from: R [Fb,3,3] of the binding faces, every
+        Gaussian's index into them, slot [N], and its triangle's scale w [N]."""
         if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
             raise ValueError(
                 f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
@@ -275,7 +331,7 @@ class Avatar(nn.Module):
         r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
         r_star = quat_multiply(q, r)
         s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
-        return mu_star, r_star, s_star, R, slot
+        return mu_star, r_star, s_star, R, slot, w
 
     def _face_slot(self) -> torch.Tensor:
         """Index of every Gaussian's face in ``binding_faces`` [N]."""
@@ -290,7 +346,7 @@ class Avatar(nn.Module):
     def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
         """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
         pose input; may be None only without a rectifier)."""
-        mu, r, s, frames, slot = self._posed(vertices)
+        mu, r, s, frames, slot, w = self._posed(vertices)
         frames = frames[slot]
         offsets = None
         if self.rectifier is not None:
@@ -299,7 +355,14 @@ class Avatar(nn.Module):
             body_pose = torch.as_tensor(body_pose, dtype=mu.dtype, device=mu.device).reshape(-1)
             if body_pose.numel() != POSE_DIM:
                 raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
-            d_mu, d_s, d_r = self.rectifier(mu, body_pose)
+            if self.config.rectifier == "local":
+                group = self.face_pose_group[self.face_ids]
+                d_mu, d_s, d_r = self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
+                # from the triangle's frame (units of w) to world space: turns and scales with it
+                d_mu = w.unsqueeze(-1) * (frames @ d_mu.unsqueeze(-1)).squeeze(-1)
+                d_s = w.unsqueeze(-1) * d_s
+            else:
+                d_mu, d_s, d_r = self.rectifier(mu, body_pose)
             mu = mu + d_mu
             dq = d_r + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=d_r.dtype, device=d_r.device)
             dq = dq / torch.linalg.vector_norm(dq, dim=-1, keepdim=True).clamp_min(1e-12)

@@ -1,9 +1,11 @@
-"""The Gaussian rectification MLP F_theta(gamma(mu*), P) -> (d_mu, d_s, d_r) (paper §3.3; docs/model.md).
+"""The Gaussian rectification MLP F_theta(gamma(x), P) -> (d_mu, d_s, d_r) (paper §3.3; docs/model.md).
 
 Layers (ReLU between): [gamma 36 | pose 69] = 105 -> 128 -> 128 -> [+gamma: 164] -> 128 -> 128 -> 10.
-The pose is the same for every Gaussian of a frame, so its part of the first layer is one
-matrix-vector product per frame, folded into that layer's bias; the [N,105] and [N,164]
-concatenations are never built; forward and backward are one fused autograd Function.
+The pose part of the first layer depends only on the pose (the paper's design: one pose for every
+Gaussian) or on the pose and a Gaussian's pose-mask group (the "local" design: few distinct masks), so
+it is one small matrix product per frame, [U,69] x [69,128], added to that layer's bias row by row;
+the [N,105] and [N,164] concatenations are never built; forward and backward are one fused autograd
+Function.
 """
 
 from __future__ import annotations
@@ -63,11 +65,13 @@ class _FusedMLP(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, gamma, pose, w1, b1, w2, b2, w3, b3, w4, b4, w5, b5, dtype):
+    def forward(ctx, gamma, pose, group, w1, b1, w2, b2, w3, b3, w4, b4, w5, b5, dtype):
+        # pose [U,P]: one pose row per group; group [N] picks every Gaussian's row (None: U = 1).
         e = gamma.shape[1]
         h = w2.shape[0]
         out_dtype = gamma.dtype
-        bias1 = torch.addmv(b1, w1[:, e:], pose.to(b1.dtype))  # pose part of layer 1, once per frame
+        bias1 = torch.addmm(b1, pose.to(b1.dtype), w1[:, e:].t())  # pose part of layer 1, once per group
+        bias1 = bias1[0] if group is None else bias1[group]
         g = gamma.to(dtype)
         w1g, w2c, w3h, w3g, w4c = (t.to(dtype) for t in (w1[:, :e], w2, w3[:, :h], w3[:, h:], w4))
         h1 = torch.addmm(bias1.to(dtype), g, w1g.t()).relu_()
@@ -75,6 +79,7 @@ class _FusedMLP(torch.autograd.Function):
         h3 = torch.addmm(b3.to(dtype), g, w3g.t()).addmm_(h2, w3h.t()).relu_()
         h4 = torch.addmm(b4.to(dtype), h3, w4c.t()).relu_()
         out = torch.addmm(b5, h4.to(out_dtype), w5.t())
+        ctx.group = group
         ctx.save_for_backward(g, pose, w1[:, e:], w1g, w2c, w3h, w3g, w4c, w5, h1, h2, h3, h4)
         return out
 
@@ -95,23 +100,32 @@ class _FusedMLP(torch.autograd.Function):
         dw2 = d2.t() @ h1
         db2 = d2.sum(0)
         d1 = _threshold_backward(d2 @ w2c, h1, 0)
-        db1 = d1.sum(0, dtype=f32)
-        dw1 = torch.cat((d1.t() @ g, torch.outer(db1, pose.to(f32)).to(d1.dtype)), 1)
+        group = ctx.group
+        if group is None:
+            dgroup = d1.sum(0, dtype=f32).unsqueeze(0)  # [1,h]: gradient of the bias row
+        else:
+            dgroup = torch.zeros(pose.shape[0], d1.shape[1], dtype=f32, device=d1.device)
+            dgroup.index_add_(0, group, d1.to(f32))  # [U,h]: gradient of each group's bias row
+        db1 = dgroup.sum(0)
+        dw1 = torch.cat((d1.t() @ g, (dgroup.t() @ pose.to(f32)).to(d1.dtype)), 1)
         dgamma = None
         if ctx.needs_input_grad[0]:
             dgamma = torch.addmm(d1 @ w1g, d3, w3g).to(f32)
-        dpose = (db1 @ w1p).to(pose.dtype) if ctx.needs_input_grad[1] else None
+        dpose = (dgroup @ w1p.to(f32)).to(pose.dtype) if ctx.needs_input_grad[1] else None
         grads = (dw1, db1, dw2, db2, dw3, db3, dw4, db4)
         dw1, db1, dw2, db2, dw3, db3, dw4, db4 = (t.to(f32) for t in grads)
-        return dgamma, dpose, dw1, db1, dw2, db2, dw3, db3, dw4, db4, dw5, db5, None
+        return dgamma, dpose, None, dw1, db1, dw2, db2, dw3, db3, dw4, db4, dw5, db5, None
 
 
 class Rectifier(nn.Module):
-    """Pose-conditioned offsets of the posed Gaussians.
+    """Pose-conditioned offsets of the Gaussians.
 
-    forward(mu_star [N,3], body_pose [69]) -> (d_mu [N,3], d_s [N,3], d_r [N,4]); d_r is an offset
-    from the identity quaternion. The last layer starts near zero, so the rectifier starts as
-    (almost exactly) the identity. No dropout: evaluation is deterministic.
+    forward(x [N,3], body_pose [69]) -> (d_mu [N,3], d_s [N,3], d_r [N,4]); d_r is an offset from the
+    identity quaternion. x is what the avatar encodes (the posed position mu* in the paper's design,
+    the rest-pose position in the local one; the avatar also decides in which frame the outputs live).
+    With ``pose_masks`` [U,69] and ``group`` [N] (index into its rows), Gaussian i sees the pose
+    ``body_pose * pose_masks[group[i]]`` instead of the whole pose. The last layer starts near zero,
+    so the rectifier starts as (almost exactly) the identity. No dropout: evaluation is deterministic.
     """
 
     def __init__(self, num_freqs: int = 6, hidden: int = 128, pose_dim: int = POSE_DIM, precision: str = "float32"):
@@ -138,22 +152,35 @@ class Rectifier(nn.Module):
     def set_frequency_alpha(self, alpha: float) -> None:
         self.freq_alpha.fill_(float(alpha))
 
-    def encode(self, mu_star: torch.Tensor) -> torch.Tensor:
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
         alpha = float(self.freq_alpha)
         weights = None
         if alpha < self.num_freqs:
-            weights = frequency_window(self.num_freqs, alpha, mu_star.device)
-        return positional_encoding(mu_star, self.num_freqs, weights)
+            weights = frequency_window(self.num_freqs, alpha, x.device)
+        return positional_encoding(x, self.num_freqs, weights)
 
-    def forward(
-        self, mu_star: torch.Tensor, body_pose: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _pose_rows(self, x, body_pose, pose_masks, group) -> torch.Tensor:
+        """The pose input as rows [U,69], one per mask group ([1,69] without masks)."""
         if body_pose.shape[-1] != self.pose_dim or body_pose.numel() != self.pose_dim:
             raise ValueError(f"body_pose must have {self.pose_dim} values, got {tuple(body_pose.shape)}")
-        gamma = self.encode(mu_star)  # [N,36]
-        pose = body_pose.reshape(self.pose_dim).to(mu_star.dtype)
+        pose = body_pose.reshape(1, self.pose_dim).to(x.dtype)
+        if (pose_masks is None) != (group is None):
+            raise ValueError("pose_masks and group go together: give both or neither")
+        if pose_masks is None:
+            return pose
+        if pose_masks.dim() != 2 or pose_masks.shape[1] != self.pose_dim or group.shape != x.shape[:1]:
+            raise ValueError(f"pose_masks must be [U,{self.pose_dim}] and group [N={x.shape[0]}], got "
+                             f"{tuple(pose_masks.shape)} and {tuple(group.shape)}")
+        return pose * pose_masks.to(x.dtype)
+
+    def forward(
+        self, x: torch.Tensor, body_pose: torch.Tensor, pose_masks: torch.Tensor | None = None,
+        group: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        pose = self._pose_rows(x, body_pose, pose_masks, group)
+        gamma = self.encode(x)  # [N,36]
         out = _FusedMLP.apply(
-            gamma, pose,
+            gamma, pose, group,
             self.l1.weight, self.l1.bias, self.l2.weight, self.l2.bias, self.l3.weight, self.l3.bias,
             self.l4.weight, self.l4.bias, self.l5.weight, self.l5.bias,
             self.compute_dtype if gamma.dtype == torch.float32 else gamma.dtype,
@@ -161,11 +188,13 @@ class Rectifier(nn.Module):
         return out[:, 0:3], out[:, 3:6], out[:, 6:10]
 
     def reference_forward(
-        self, mu_star: torch.Tensor, body_pose: torch.Tensor
+        self, x: torch.Tensor, body_pose: torch.Tensor, pose_masks: torch.Tensor | None = None,
+        group: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The same MLP written plainly with the concatenated [N,105] / [N,164] inputs (for tests)."""
-        gamma = self.encode(mu_star)
-        pose = body_pose.reshape(1, self.pose_dim).to(mu_star.dtype).expand(gamma.shape[0], -1)
+        pose = self._pose_rows(x, body_pose, pose_masks, group)
+        gamma = self.encode(x)
+        pose = pose.expand(gamma.shape[0], -1) if group is None else pose[group]
         x = F.relu(self.l1(torch.cat((gamma, pose), -1)))
         x = F.relu(self.l2(x))
         x = F.relu(self.l3(torch.cat((x, gamma), -1)))

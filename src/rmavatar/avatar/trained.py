@@ -37,7 +37,8 @@ from rmavatar.utils import UserError
 MARKER = "rmavatar-run.json"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # 2: TrainConfig.model is the avatar's own config (AvatarConfig, without its seed); the body shape is stored.
-CHECKPOINT_VERSION = 2
+# 3: model.rectifier names the rectifier's design ("paper", "local") or is false (none).
+CHECKPOINT_VERSION = 3
 
 
 def checkpoint_path(run_dir: str | os.PathLike) -> Path:
@@ -68,7 +69,20 @@ def _migrate_v1(payload: dict) -> dict:
     return {**payload, "avatar": avatar, "betas": None, "version": 2}
 
 
-_MIGRATIONS = {1: _migrate_v1}
+def _migrate_v2(payload: dict) -> dict:
+    """Version 2: ``rectifier`` was true/false; true was the paper's design, the only one then."""
+
+    def named(section):
+        return {**section, "rectifier": "paper"} if section.get("rectifier") is True else section
+
+    avatar = {**payload["avatar"], "config": named(payload["avatar"]["config"])}
+    config = payload["config"]
+    if isinstance(config.get("model"), dict):
+        config = {**config, "model": named(config["model"])}
+    return {**payload, "avatar": avatar, "config": config, "version": 3}
+
+
+_MIGRATIONS = {1: _migrate_v1, 2: _migrate_v2}
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:

@@ -278,6 +278,13 @@ class AnnyBody(BodyModel):
             canonical = self.forward(None, zero, torch.zeros(1, 69), zero).vertices[0]
         self.register_buffer("v_template", canonical, persistent=False)
 
+    def joint_weights(self) -> torch.Tensor:
+        """``[V,24]``: each Anny bone's skinning weight counted for the SMPL joint that drives it
+        (``source_joint``), so a joint's column is the share of the vertex that its rotation moves."""
+        drive = torch.zeros(len(self.bone_names), 24, device=self.skin_weights.device)
+        drive[torch.arange(len(self.bone_names)), self.source_joint] = 1.0
+        return self.skin_weights @ drive
+
     def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor) -> torch.Tensor:
         """Retarget SMPL axis-angle pose to Anny's local bone rotations ``[B,104,3,3]`` (our frame)."""
         local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], 1).reshape(-1, 24, 3))

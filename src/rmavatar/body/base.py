@@ -66,6 +66,11 @@ class BodyModel(torch.nn.Module):
     ) -> BodyOutput:  # pragma: no cover - implemented by subclasses
         raise NotImplementedError
 
+    def joint_weights(self) -> torch.Tensor:  # pragma: no cover - implemented by subclasses
+        """Skinning weights per vertex and SMPL joint ``[V,24]`` (rows sum to 1): how much each of the
+        24 joints' world transforms moves each vertex of ``v_template``."""
+        raise NotImplementedError
+
 
 def check_pose_inputs(
     betas: torch.Tensor | None,

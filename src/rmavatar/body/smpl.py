@@ -210,6 +210,9 @@ class SmplBody(BodyModel):
         self.register_buffer("faces", torch.tensor(data["f"].astype(np.int64)), persistent=False)
         self.register_buffer("binding_faces", torch.arange(len(data["f"])), persistent=False)
 
+    def joint_weights(self) -> torch.Tensor:
+        return self.weights
+
     @classmethod
     def from_path(cls, path: str | Path, gender: str | None = None) -> "SmplBody":
         file = find_smpl_file(path, gender)

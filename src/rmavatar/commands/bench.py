@@ -13,7 +13,7 @@ from pathlib import Path
 # name -> (module, one-line help). Add a row per benchmark.
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "raster": ("rmavatar.bench.raster", "rasterizer forward / forward+backward time, peak memory, Gaussians/s"),
-    "quality": ("rmavatar.bench.quality", "full model vs the paper's ablations: PSNR/SSIM/LPIPS on test and novel_pose, time"),
+    "quality": ("rmavatar.bench.quality", "full model vs the paper's ablations and our variants: PSNR/SSIM/LPIPS on test and novel_pose (mean and spread over --seeds), time"),
     "step": ("rmavatar.bench.step", "training iteration time at 256x256 (~25k Gaussians) and its breakdown by stage"),
     "speed": ("rmavatar.bench.speed", "rasterizer, training step and rendering speed, each as time and as a ratio to a reference path"),
     "avatar": ("rmavatar.bench.avatar", "the avatar's forward+backward (posing + rectifier): float32, bfloat16, no rectifier"),
@@ -51,13 +51,14 @@ def _raster_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _quality_options(parser: argparse.ArgumentParser) -> None:
-    from rmavatar.bench.quality import VARIANTS
+    from rmavatar.bench.quality import VARIANTS, parse_seeds
 
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = """examples:
   rmavatar bench quality --json bench_quality.json              # CPU budget: 256px, 1000 iterations
   rmavatar bench quality --iters 50000 --size 1080 --device cuda --data peoplesnapshot:DIR --json q.json
   rmavatar bench quality --variants full no_rectifier --iters 300 --size 128
+  rmavatar bench quality --seeds 0,1,2 --variants full no_rectifier local_rectifier --json q3.json
 """
     parser.add_argument("--json", metavar="FILE", help="write the results to this JSON file")
     parser.add_argument("--work", type=Path, default=Path("bench_quality_runs"),
@@ -67,7 +68,9 @@ def _quality_options(parser: argparse.ArgumentParser) -> None:
                         help=f"which variants (default all: {' '.join(VARIANTS)})")
     parser.add_argument("--size", type=int, default=256, help="image size (default 256)")
     parser.add_argument("--iters", type=int, default=1000, help="iterations per variant (default 1000)")
-    parser.add_argument("--seed", type=int, default=0, help="subject and training seed (default 0)")
+    parser.add_argument("--seeds", "--seed", dest="seeds", type=parse_seeds, default=[0], metavar="S[,S...]",
+                        help="subject and training seed, or several (0,1,2: three subjects; the table then "
+                             "gives mean ± standard deviation over them); default 0")
     parser.add_argument("--max-gaussians", type=int, default=40_000,
                         help="densification cap (default 40000, as the demo; 0 = none)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")

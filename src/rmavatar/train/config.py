@@ -98,10 +98,12 @@ def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
     write_yaml(cfg, path)
 
 
-# The paper's ablations (§4.4) as dotted overrides: each flips exactly one switch of the full model.
+# The paper's ablations (§4.4) and our variants as dotted overrides: each flips exactly one switch of the
+# full model.
 ABLATIONS: dict[str, dict[str, Any]] = {
     "full": {},
     "no_rectifier": {"model.rectifier": False},  # "w/o GauRec": Gaussians fixed to their faces
     "no_offset_loss": {"loss.offset": 0.0},  # "w/o OffsetLoss"
     "no_scaling_loss": {"loss.scaling": 0.0},  # "w/o ScalingLoss"
+    "local_rectifier": {"model.rectifier": "local"},  # ours: docs/model.md "The local rectifier"
 }
