@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -67,7 +68,17 @@ def read_mask(path: Path) -> np.ndarray:
         return arr.astype(np.float32)
     if arr.dtype == np.uint16 or arr.max(initial=0) > 255:
         return arr.astype(np.float32) / 65535.0
+    if arr.max(initial=0) == 1:
+        # Saved as 0/1 instead of 0-255: read as 0-255 every target would be background.
+        if path.parent not in _WARNED_01:
+            _WARNED_01.add(path.parent)
+            warnings.warn(f"masks in {path.parent} hold only 0 and 1 (e.g. {path.name}): read as 0/1 masks "
+                          "(save them as 0-255 to silence this)", UserWarning, stacklevel=2)
+        return arr.astype(np.float32)
     return arr.astype(np.float32) / 255.0
+
+
+_WARNED_01: set = set()
 
 
 def read_binary_mask(path: Path) -> np.ndarray:

@@ -108,6 +108,11 @@ def check_output_folder(path: str | os.PathLike, kind: str, *, option: str, over
     long work. ``writes``: glob patterns of the names it will write (checked against foreign files with
     ``overwrite``, which never replaces a file rmavatar did not write)."""
     path = Path(path)
+    full = Path(os.path.abspath(path))
+    if not full.name:
+        raise UserError(f"{option} {path}: give a folder below the file system root")
+    if Path.cwd() == full or full in Path.cwd().parents:
+        raise UserError(f"{option} {path} is the current folder or holds it: give a new folder for the output")
     if os.path.lexists(path) and not path.is_dir():
         raise UserError(f"{option} {path} exists and is not a folder")
     check_writable_folder(path, f"{option} {path}", create=True)
@@ -140,6 +145,7 @@ def output_folder(path: str | os.PathLike, kind: str, *, option: str = "output",
     writes = tuple(writes)
     check_output_folder(path, kind, option=option, overwrite=overwrite, writes=writes)
     foreign = foreign_files(path, kind)
+    path = Path(os.path.abspath(path))
     if not foreign:
         with atomic_dir(path, replace=True) as tmp:
             yield tmp
