@@ -19,6 +19,7 @@ import numpy as np
 
 from rmavatar.body.poses import PoseSequence
 from rmavatar.utils import UserError
+from rmavatar.utils.errors import load_error
 
 
 @dataclass
@@ -47,7 +48,7 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
-        raise UserError(f"cannot read motion file {path}: {exc}") from exc
+        raise UserError(f"cannot read motion file {path}: {load_error(exc)}") from None
     trans = betas = fps = None
     amass = False
     if isinstance(data, np.ndarray):

@@ -74,14 +74,22 @@ def _entries(folder: Path) -> list[str]:
 
 
 def _owned(marker: dict | None) -> set[str]:
-    """The marker's files, its folders (ancestors of its files) and the marker itself."""
+    """The marker's files, its folders (ancestors of its files) and the marker itself. An entry ending in
+    '/' (a folder written in place, e.g. a demo's run/) owns everything below it: see ``_is_owned``."""
     if marker is None:
         return set()
     owned = {MARKER}
     for f in marker["files"]:
         parts = Path(f).parts
         owned.update(Path(*parts[: i + 1]).as_posix() for i in range(len(parts)))
+        if f.endswith("/"):
+            owned.add(f)
     return owned
+
+
+def _is_owned(entry: str, owned: set[str]) -> bool:
+    parts = entry.split("/")
+    return entry in owned or any("/".join(parts[:i]) + "/" in owned for i in range(1, len(parts)))
 
 
 def foreign_files(folder: str | os.PathLike, kind: str) -> list[str]:
@@ -91,7 +99,7 @@ def foreign_files(folder: str | os.PathLike, kind: str) -> list[str]:
         return []
     marker = read_marker(folder)
     owned = _owned(marker) if marker is not None and marker.get("kind") == kind else set()
-    return [e for e in _entries(folder) if e not in owned and not is_temporary(Path(e).name)]
+    return [e for e in _entries(folder) if not _is_owned(e, owned) and not is_temporary(Path(e).name)]
 
 
 def _describe(kind: str, marker: dict | None) -> str:
@@ -181,13 +189,17 @@ def _write_marker(folder: Path, kind: str, files: list[str]) -> None:
 
     doc = {"format": FORMAT, "kind": kind, "command": command_name, "version": __version__,
            "files": sorted(f for f in files if f != MARKER)}
+    folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(folder / MARKER) as tmp:
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
 
 
 def mark_folder(folder: str | os.PathLike, kind: str, files: Iterable[str]) -> None:
-    """Write ``folder``'s marker for an output that is written in place (a demo folder), listing ``files``."""
-    _write_marker(Path(folder), kind, list(files))
+    """Write ``folder``'s marker for an output that is written in place (a demo folder), listing ``files``
+    ('name/' owns a whole sub-folder); the files already listed there are kept in the list."""
+    old = read_marker(folder)
+    keep = old["files"] if old is not None and old.get("kind") == kind else []
+    _write_marker(Path(folder), kind, sorted(set(keep) | set(files)))
 
 
 # ----------------------------------------------------------------------------------------------- single files
