@@ -63,9 +63,9 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
             amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
             for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
                 if key in data.files:
-                    fps = float(np.asarray(data[key]).reshape(-1)[0])
+                    fps = float(_numbers(data[key], path, key).reshape(-1)[0])
                     break
-    poses = np.asarray(poses, dtype=np.float64)
+    poses = _numbers(poses, path, "poses")
     if poses.ndim == 1 and poses.size in (72, 156, 165):
         poses = poses[None]
     if poses.ndim != 2 or poses.shape[1] not in (72, 156, 165):
@@ -82,13 +82,13 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     N = len(poses)
     if trans is None:
         trans = np.zeros((N, 3))
-    trans = np.asarray(trans, dtype=np.float64)
+    trans = _numbers(trans, path, "trans")
     if trans.shape != (N, 3):
         raise UserError(f"motion file {path}: trans must have shape ({N}, 3), got {trans.shape}")
     if not np.isfinite(trans).all():
         raise UserError(f"motion file {path}: trans contains NaN/inf")
     if betas is not None:
-        betas = np.asarray(betas, dtype=np.float32).reshape(-1)[:10]
+        betas = _numbers(betas, path, "betas").astype(np.float32).reshape(-1)[:10]
     if amass and not keep_up:
         poses, trans = _z_up_to_y_up(poses, trans)
     return Motion(
@@ -98,6 +98,14 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
         betas=betas,
         fps=fps,
     )
+
+
+def _numbers(value, path: Path, key: str) -> np.ndarray:
+    """``value`` as float64; UserError naming the file and key for strings or other non-numbers."""
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool) or arr.size == 0:
+        raise UserError(f"motion file {path}: '{key}' must hold numbers, got {arr.dtype} of shape {arr.shape}")
+    return arr.astype(np.float64)
 
 
 def _z_up_to_y_up(poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

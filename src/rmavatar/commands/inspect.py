@@ -73,8 +73,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames < 1:
         raise UserError(f"--frames must be >= 1, got {args.frames}")
-    if args.size is not None and not 8 <= args.size <= 8192:
-        raise UserError(f"--size must be in 8..8192 pixels, got {args.size}")
+    if args.size is not None and not 1 <= args.size <= 8192:
+        raise UserError(f"--size must be in 1..8192 pixels, got {args.size}")
     if args.json and args.json != "-":
         check_output_file(args.json, option="--json", overwrite=args.overwrite)
     if args.overlay:
