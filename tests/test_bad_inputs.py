@@ -175,8 +175,8 @@ CASES = [
        lambda t, w: ["synth", str(_foreign_dataset(t)), "--size", "16", "--train", "1", "--test", "1"], "mine"),
     _c("synth-loss:dataset-of-write_native",
        lambda t, w: ["synth", str(_dataset(t / "native")), "--size", "16"], "native"),
-    _c("synth-loss:overwrite-would-replace-meta.yaml",
-       lambda t, w: ["synth", str(_foreign_dataset(t)), "--overwrite", "--size", "16"], "meta.yaml"),
+    _c("synth-loss:overwrite-would-replace-their-dataset-files",
+       lambda t, w: ["synth", str(_foreign_dataset(t)), "--overwrite", "--size", "16"], "cameras.npz"),
     _c("render-loss:turntable-frames-folder-of-user-frames",
        lambda t, w: ["render", w["run"], "--turntable", "--out", str(_frames_dir(t)) + "/"], "frames"),
     _c("animate-loss:mp4-not-written-by-rmavatar",
@@ -305,7 +305,10 @@ def _snapshot(*roots: Path) -> dict[str, str]:
 
 @pytest.mark.parametrize("build, code, needle", CASES)
 def test_bad_input(build, code, needle, world, tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("RMAVATAR_CACHE", str(tmp_path.parent / "cache"))
+    # A registry of written files of its own (the cache folder itself keeps the built body models).
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path.parent / "outputs-registry.json")
     monkeypatch.chdir(tmp_path)
     argv = build(tmp_path, world)
     before = _snapshot(tmp_path, world["root"])
@@ -331,3 +334,64 @@ def test_case_counts(capsys):
         print("\nbad-input cases per command:", json.dumps(dict(sorted(counts.items()))), f"total {sum(counts.values())}")
     assert set(counts) >= {"train", "eval", "animate", "render", "export", "synth", "inspect", "body", "demo",
                            "bench", "capture", "batch", "view"}
+
+
+def test_stale_temporaries_of_killed_runs_are_swept(tmp_path):
+    """A SIGKILLed writer leaves its temporary (e.g. animate's MP4); the next write beside it removes it,
+    but never a live process's temporary or a user's file."""
+    from rmavatar.utils import atomic_path
+    from rmavatar.utils.files import tmp_prefix
+
+    dead = tmp_prefix("anim").replace(f".{os.getpid()}.", f".{dead_pid()}.")
+    stale = user_file(tmp_path / f"{dead}abc.tmp.mp4", "half a video")
+    stale_dir = tmp_path / f"{dead}xyz.tmp"
+    stale_dir.mkdir()
+    live = user_file(tmp_path / f"{tmp_prefix('other')}def.tmp.mp4", "being written")
+    mine = user_file(tmp_path / ".anim.abcd1234.tmp.mp4", "a user's hidden file")
+    with atomic_path(tmp_path / "anim.mp4") as tmp:
+        tmp.write_text("video")
+    assert not stale.exists() and not stale_dir.exists()
+    assert live.exists() and mine.exists() and (tmp_path / "anim.mp4").read_text() == "video"
+
+
+def test_overwrite_keeps_files_rmavatar_did_not_write(tmp_path, monkeypatch):
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path / "registry.json")
+    folder = tmp_path / "out"
+    with outputs.output_folder(folder, "frames") as tmp:
+        (tmp / "frame_00000.png").write_text("1")
+        (tmp / "frame_00001.png").write_text("1")
+    user_file(folder / "notes.txt", "mine")
+    with outputs.output_folder(folder, "frames", overwrite=True, writes=("frame_*.png",)) as tmp:
+        (tmp / "frame_00000.png").write_text("2")
+    assert sorted(p.name for p in folder.iterdir()) == [".rmavatar", "frame_00000.png", "notes.txt"]
+    assert (folder / "frame_00000.png").read_text() == "2" and (folder / "notes.txt").read_text() == "mine"
+    with outputs.output_folder(folder / "sub", "frames") as tmp:  # and the second write of own files replaces
+        (tmp / "a").write_text("x")
+    outputs.write_json(tmp_path / "r.json", {"a": 1})
+    outputs.write_json(tmp_path / "r.json", {"a": 2})  # its own file: replaced without --overwrite
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 2}
+
+
+def test_masks_saved_0_1_are_rescaled_with_a_warning(tmp_path):
+    from PIL import Image
+
+    from rmavatar.data import load_dataset
+    from rmavatar.data.checks import check_dataset
+
+    d = _dataset(tmp_path / "d")
+    for p in (d / "masks").iterdir():
+        Image.fromarray(np.ones((SIZE, SIZE), np.uint8)).save(p)
+    ds = load_dataset(d)
+    with pytest.warns(UserWarning, match="only 0 and 1"):
+        check_dataset(ds)
+    assert ds.frame("train", 0).mask.min() == 1.0
+
+
+def test_no_message_recommends_unsafe_loading():
+    src = Path(__file__).parents[1] / "src"
+    for path in src.rglob("*.py"):
+        text = path.read_text()
+        for bad in ("allow_pickle=True", "weights_only=False"):
+            assert bad not in text, f"{path} mentions {bad}"

@@ -51,20 +51,25 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
         raise UserError(f"cannot read motion file {path}: {load_error(exc)}") from None
     trans = betas = fps = None
     amass = False
-    if isinstance(data, np.ndarray):
-        poses = data
-    else:
-        with data:
-            if "poses" not in data.files:
-                raise UserError(f"motion file {path} has no 'poses' array (it has: {', '.join(data.files)})")
-            poses = data["poses"]
-            trans = data["trans"] if "trans" in data.files else data.get("transl")
-            betas = data["betas"] if "betas" in data.files else None
-            amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
-            for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
-                if key in data.files:
-                    fps = float(_numbers(data[key], path, key).reshape(-1)[0])
-                    break
+    try:
+        if isinstance(data, np.ndarray):
+            poses = data
+        else:
+            with data:
+                if "poses" not in data.files:
+                    raise UserError(f"motion file {path} has no 'poses' array (it has: {', '.join(data.files)})")
+                poses = data["poses"]
+                trans = data["trans"] if "trans" in data.files else data.get("transl")
+                betas = data["betas"] if "betas" in data.files else None
+                amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
+                for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
+                    if key in data.files:
+                        fps = float(_numbers(data[key], path, key).reshape(-1)[0])
+                        break
+    except ValueError as exc:  # an npz member is read only when accessed: object arrays fail here
+        if "allow_pickle" not in str(exc):
+            raise
+        raise UserError(f"cannot read motion file {path}: {load_error(exc)}") from None
     poses = _numbers(poses, path, "poses")
     if poses.ndim == 1 and poses.size in (72, 156, 165):
         poses = poses[None]

@@ -11,7 +11,7 @@ PICKLE_REFUSED = ("it holds pickled Python objects, which rmavatar never unpickl
 
 def load_error(exc: BaseException) -> str:
     """The reason a file failed to load, for a message. numpy's and torch's own texts about pickles
-    recommend allow_pickle=True / weights_only=False, which would let a hostile file run code: those
+    recommend switching numpy's or torch's pickle guard off, which would let a hostile file run code: those
     are replaced by a reason that recommends nothing of the kind."""
     import pickle
 
