@@ -186,8 +186,8 @@ def test_png_frames_folder(tmp_path):
         for f in frames:
             write(f)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["frame_00000.png", "frame_00001.png", "frame_00002.png"]
-    np.testing.assert_array_equal(imageio.imread(out / names[2]), frames[2])  # PNG is lossless
+    assert names == [".rmavatar", "frame_00000.png", "frame_00001.png", "frame_00002.png"]  # + ownership marker
+    np.testing.assert_array_equal(imageio.imread(out / "frame_00002.png"), frames[2])  # PNG is lossless
 
 
 @pytest.mark.parametrize("target", ["v.mp4", "frames/"])
@@ -202,8 +202,10 @@ def test_writer_failure_leaves_nothing(tmp_path, target):
 def test_writer_keeps_existing_output_on_failure(tmp_path):
     out = tmp_path / "v.mp4"
     out.write_bytes(b"old video")
+    with pytest.raises(UserError, match="v.mp4 exists and rmavatar cannot prove it wrote it"):
+        frame_writer(out, 10, 16, 16).__enter__()  # not ours: refused before anything is written
     with pytest.raises(ValueError):
-        with frame_writer(out, 10, 16, 16) as write:
+        with frame_writer(out, 10, 16, 16, overwrite=True) as write:
             write(np.zeros((8, 8, 3), np.uint8))  # wrong size
     assert out.read_bytes() == b"old video"
     assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]
@@ -216,7 +218,7 @@ def test_bad_outputs(tmp_path):
         check_output(tmp_path / "v.avi")
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "thesis.tex").write_text("precious")
-    with pytest.raises(UserError, match="holds other files"):
+    with pytest.raises(UserError, match="mine holds files that rmavatar did not write.*thesis.tex"):
         check_output(str(tmp_path / "mine") + "/")
     blocker = tmp_path / "file"
     blocker.write_text("x")

@@ -152,12 +152,19 @@ def test_native_write_is_atomic_and_checks_counts(tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("old")
     n = 4
-    with pytest.raises(UserError, match="refusing to replace .*not an rmavatar dataset"):
+    with pytest.raises(UserError, match="nat holds files that rmavatar did not write.*keep.txt.*refusing"):
         write_native(out, {"name": "x", "splits": {"train": [0]}}, Camera(np.eye(3), np.eye(4), 8, 6),
                      {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
                       "transl": np.zeros((n, 3))}, [np.zeros((6, 8, 3))] * n, [np.zeros((6, 8))] * n,
                      progress=False)
-    (out / "meta.yaml").write_text("an older dataset")  # a dataset folder may be replaced, on success only
+    (out / "meta.yaml").write_text("a dataset made by something else")  # not ours either: still refused
+    with pytest.raises(UserError, match="refusing to replace"):
+        write_native(out, {"name": "x", "splits": {"train": [0]}}, Camera(np.eye(3), np.eye(4), 8, 6),
+                     {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
+                      "transl": np.zeros((n, 3))}, [np.zeros((6, 8, 3))] * n, [np.zeros((6, 8))] * n,
+                     progress=False)
+    assert (out / "meta.yaml").read_text() == "a dataset made by something else"
+    theirs, out = out, tmp_path / "nat2"  # the checks of the frames, on a new folder
     params = {"betas": np.zeros(10), "global_orient": np.zeros((n, 3)), "body_pose": np.zeros((n, 69)),
               "transl": np.zeros((n, 3))}
     cam = Camera(np.eye(3), np.eye(4), 8, 6)
@@ -165,7 +172,7 @@ def test_native_write_is_atomic_and_checks_counts(tmp_path):
     masks = (np.zeros((6, 8)) for _ in range(n))
     with pytest.raises(UserError, match="3 images for 4 frames"):
         write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params, imgs, masks, progress=False)
-    assert (out / "keep.txt").read_text() == "old"
+    assert (theirs / "keep.txt").read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["nat"]  # no temporary folder left behind
     with pytest.raises(UserError, match="more images"):
         write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params,
@@ -176,7 +183,7 @@ def test_native_write_is_atomic_and_checks_counts(tmp_path):
     with pytest.raises(UserError, match="cameras are 8x6, images 9x6"):
         write_native(out, {"name": "x", "splits": {"train": [0]}}, cam, params,
                      [np.zeros((6, 9, 3))] * 4, [np.zeros((6, 9))] * 4, progress=False)
-    assert (out / "keep.txt").read_text() == "old"
+    assert (theirs / "keep.txt").read_text() == "old"
 
 
 def test_native_bad_input(tmp_path):

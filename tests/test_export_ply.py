@@ -140,8 +140,8 @@ def test_failed_write_leaves_nothing(tmp_path):
         write_ply(tmp_path / "bad.ply", **gs)
     with pytest.raises(UserError, match="does not exist"):
         write_ply(tmp_path / "no" / "such" / "a.ply", **random_gaussians(n=5))
-    (tmp_path / "in_the_way.ply").mkdir()  # the final rename fails: no temporary file may remain
-    with pytest.raises(UserError, match="cannot write"):
+    (tmp_path / "in_the_way.ply").mkdir()  # refused before writing: no temporary file may remain
+    with pytest.raises(UserError, match="in_the_way.ply is a folder"):
         write_ply(tmp_path / "in_the_way.ply", **random_gaussians(n=5))
     assert [p.name for p in tmp_path.iterdir()] == ["in_the_way.ply"]
     assert list((tmp_path / "in_the_way.ply").iterdir()) == []
@@ -149,5 +149,5 @@ def test_failed_write_leaves_nothing(tmp_path):
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc (a file system nobody can create files in)")
 def test_unwritable_file_system():
-    with pytest.raises(UserError, match="cannot write /proc/rmavatar-test.ply"):
+    with pytest.raises(UserError, match="cannot write --ply /proc/rmavatar-test.ply"):
         write_ply("/proc/rmavatar-test.ply", **random_gaussians(n=5))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rmavatar.utils import UserError, atomic_path
+from rmavatar.utils.outputs import check_output_folder, mark_folder
 
 
 @dataclass
@@ -30,6 +31,7 @@ class DemoConfig:
     animation_frames: int = 60
     turntable_frames: int = 60
     synth: dict | None = None  # SynthConfig overrides (frame counts), e.g. for a quick smoke run
+    overwrite: bool = False  # write into a folder holding other files (never touching them)
 
 
 def write_demo_motion(path: Path, num_frames: int, seed: int) -> Path:
@@ -46,10 +48,16 @@ def write_demo_motion(path: Path, num_frames: int, seed: int) -> Path:
     return path
 
 
-def _check_out(out: Path) -> None:
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not (out / "metrics.json").exists() \
-            and not (out / "data").exists():
-        raise UserError(f"--out {out} exists and does not hold an earlier demo; pick another folder")
+DEMO_KIND = "demo"
+# What the demo writes into its folder ('/': a folder it owns whole).
+DEMO_FILES = ("data/", "run/", "eval_test/", "eval_novel_pose/", "motion.npz", "animation.mp4", "turntable.mp4",
+              "avatar.ply", "metrics.json")
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """--out must be new, empty or an earlier demo's folder; with ``overwrite`` a folder of other files works
+    too, as long as none of them has a name the demo writes (see rmavatar.utils.outputs)."""
+    check_output_folder(out, DEMO_KIND, option="--out", overwrite=overwrite, writes=[f.rstrip("/") for f in DEMO_FILES])
 
 
 def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
@@ -63,8 +71,8 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     from rmavatar.train import TrainConfig, train
 
     out = cfg.out
-    _check_out(out)
-    out.mkdir(parents=True, exist_ok=True)
+    _check_out(out, cfg.overwrite)
+    mark_folder(out, DEMO_KIND, DEMO_FILES)  # from here on these names are the demo's own to replace
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
 
@@ -105,7 +113,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
         timings[f"eval_{split}_seconds"] = time.perf_counter() - t
 
     trained = load_trained(run_dir)
-    opts = VideoOptions(size=cfg.video_size, fps=30.0, progress=progress)
+    opts = VideoOptions(size=cfg.video_size, fps=30.0, progress=progress, overwrite=True)
     motion_path = write_demo_motion(out / "motion.npz", cfg.animation_frames, cfg.seed)
     t = step(f"animation with {motion_path.name} -> animation.mp4")
     seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
@@ -115,7 +123,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     turntable_video(trained, out / "turntable.mp4", num_frames=cfg.turntable_frames, pose="train", opts=opts)
     timings["turntable_seconds"] = time.perf_counter() - t
     t = step("export -> avatar.ply")
-    num = export_ply(trained, trained.rest_pose("tpose"), out / "avatar.ply")
+    num = export_ply(trained, trained.rest_pose("tpose"), out / "avatar.ply", overwrite=True)
     timings["export_seconds"] = time.perf_counter() - t
 
     metrics.update(

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 
@@ -34,6 +35,21 @@ class VideoOptions:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     fps: float = 30.0
     progress: bool = True
+    overwrite: bool = False  # replace an output rmavatar cannot prove it wrote (see utils.outputs)
+
+    def validate(self) -> "VideoOptions":
+        """UserError for a value no video can be shot with (checked before any rendering)."""
+        if not 2 <= self.size <= 8192:
+            raise UserError(f"--size must be in 2..8192 pixels, got {self.size}")
+        if not (math.isfinite(self.aspect) and self.aspect > 0):
+            raise UserError(f"aspect must be a positive number, got {self.aspect}")
+        if not (math.isfinite(self.fov_deg) and 0.0 < self.fov_deg < 180.0):
+            raise UserError(f"--fov must be between 0 and 180 degrees (exclusive), got {self.fov_deg}")
+        if not (math.isfinite(self.fps) and self.fps > 0):
+            raise UserError(f"--fps must be a positive number, got {self.fps}")
+        if len(self.background) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in self.background):
+            raise UserError(f"background must be three values in 0..1, got {tuple(self.background)}")
+        return self
 
 
 def _frame_size(opts: VideoOptions) -> tuple[int, int]:
@@ -59,7 +75,7 @@ def animate_video(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathL
     ``camera``: 'fixed' (in front) or 'orbit' (one full turn around the body over the clip).
     Returns the number of frames written.
     """
-    opts = opts or VideoOptions()
+    opts = (opts or VideoOptions()).validate()
     seq = recenter_motion(seq, trained.root_rest())
     n = len(seq)
     width, height = _frame_size(opts)
@@ -73,7 +89,7 @@ def animate_video(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathL
     else:
         raise ValueError(f"camera must be 'fixed' or 'orbit', got {camera!r}")
     chunk = 16
-    with frame_writer(out, opts.fps, width, height) as write:
+    with frame_writer(out, opts.fps, width, height, overwrite=opts.overwrite) as write:
         bar = tqdm(total=n, desc="animate", unit="frame", disable=not opts.progress)
         for s in range(0, n, chunk):
             part = seq.select(slice(s, s + chunk))
@@ -90,7 +106,7 @@ def turntable_video(trained: TrainedAvatar, out: str | os.PathLike, num_frames: 
                     opts: VideoOptions | None = None, elevation_deg: float = 0.0) -> int:
     """A 360-degree orbit around the avatar standing in a rest pose ('tpose', 'apose' or 'train', see
     :meth:`TrainedAvatar.rest_pose`) into ``out``."""
-    opts = opts or VideoOptions()
+    opts = (opts or VideoOptions()).validate()
     seq = trained.rest_pose(pose)
     verts = trained.vertices(seq)
     gs = trained.gaussians(verts[0], seq.body_pose[0])
@@ -98,7 +114,7 @@ def turntable_video(trained: TrainedAvatar, out: str | os.PathLike, num_frames: 
     K = intrinsics(width, height, opts.fov_deg)
     center, distance = frame_the_body(verts, opts)
     views = orbit_viewmats(center, distance, num_frames, elevation_deg=elevation_deg)
-    with frame_writer(out, opts.fps, width, height) as write:
+    with frame_writer(out, opts.fps, width, height, overwrite=opts.overwrite) as write:
         for view in tqdm(views, desc="turntable", unit="frame", disable=not opts.progress):
             write(to_uint8(trained.render(gs, Camera(K, view, width, height), opts.background)))
     return num_frames

@@ -13,7 +13,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from rmavatar.utils import UserError, atomic_dir, atomic_path, check_writable_folder
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import check_output_file, check_output_folder, output_file, output_folder
 
 VIDEO_SUFFIXES = (".mp4",)
 
@@ -24,43 +25,36 @@ def is_frames_dir(out: str | os.PathLike) -> bool:
     return text.endswith("/") or text.endswith(os.sep) or Path(text).is_dir()
 
 
-def check_output(out: str | os.PathLike) -> Path:
-    """Validate an output path before any work is done; raise :class:`UserError` if it cannot be written."""
+FRAMES_KIND = "frames"
+FRAME_NAMES = ("frame_*.png",)
+
+
+def check_output(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Validate an output path before any work is done; raise :class:`UserError` if it cannot be written,
+    or holds something rmavatar did not write (see :mod:`rmavatar.utils.outputs`)."""
     path = Path(str(out).rstrip("/" + os.sep) or ".")
-    folder = is_frames_dir(out)
-    if not folder and path.suffix.lower() not in VIDEO_SUFFIXES:
-        raise UserError(f"output {out}: use a .mp4 file, or a folder (ending in '/') for PNG frames")
-    if folder and path.is_dir():
-        stray = [p.name for p in path.iterdir() if not (p.name.startswith("frame_") and p.suffix == ".png")]
-        if stray:
-            raise UserError(f"output folder {path} holds other files ({', '.join(sorted(stray)[:3])}...); "
-                            "frames are only written into an empty folder or one of earlier frames")
-    parent = path.parent
-    while folder and not parent.exists() and parent != parent.parent:
-        parent = parent.parent  # a frames folder's missing parents are created
-    if parent.exists() and not parent.is_dir():
-        raise UserError(f"cannot write {out}: {parent} is not a folder")
-    check_writable_folder(parent / path.name, str(out))
-    if path.exists() and not folder and not os.access(path, os.W_OK):
-        raise UserError(f"cannot write {out}: the file exists and is not writable")
-    return path
+    if is_frames_dir(out):
+        return check_output_folder(path, FRAMES_KIND, option="--out", overwrite=overwrite, writes=FRAME_NAMES)
+    return check_output_file(path, option="--out", overwrite=overwrite, suffixes=VIDEO_SUFFIXES)
 
 
 @contextlib.contextmanager
-def frame_writer(out: str | os.PathLike, fps: float, width: int, height: int) -> Iterator[Callable]:
+def frame_writer(out: str | os.PathLike, fps: float, width: int, height: int,
+                 overwrite: bool = False) -> Iterator[Callable]:
     """Yield ``write(frame [H,W,3] uint8)``; the MP4 / PNG folder appears when the block ends cleanly.
 
     MP4s are H.264 in yuv420p (what browsers and phones play), so ``width`` and ``height`` must be even.
     """
-    path = check_output(out)
+    path = check_output(out, overwrite)
     try:
         if is_frames_dir(out):
-            with atomic_dir(path) as tmp:
+            with output_folder(path, FRAMES_KIND, option="--out", overwrite=overwrite, writes=FRAME_NAMES) as tmp:
                 yield _png_writer(Path(tmp), width, height)
         else:
             if width % 2 or height % 2:
                 raise ValueError(f"H.264 yuv420p needs even sizes, got {width}x{height}")
-            with atomic_path(path) as tmp, _mp4_writer(Path(tmp), fps, width, height) as write:
+            with output_file(path, option="--out", overwrite=overwrite) as tmp, \
+                    _mp4_writer(Path(tmp), fps, width, height) as write:
                 yield write
     except OSError as exc:  # permissions, a read-only or full file system, ffmpeg unable to write
         raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
@@ -96,8 +90,13 @@ def _mp4_writer(path: Path, fps: float, width: int, height: int) -> Iterator[Cal
 
     try:
         yield write
-    finally:
-        gen.close()  # flushes and waits for ffmpeg (or stops it when an error unwinds)
+    except BaseException:
+        # Ctrl-C can land inside the generator's own send(); closing it then may raise again (a
+        # SystemError or ValueError from the half-run generator): the first error is the one to report.
+        with contextlib.suppress(Exception):
+            gen.close()
+        raise
+    gen.close()  # flushes and waits for ffmpeg
 
 
 def _check_frame(frame: np.ndarray, width: int, height: int) -> None:

@@ -22,6 +22,7 @@ from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_fra
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
+from rmavatar.utils.config import check_fields
 
 RECTIFIERS = ("paper", "local")  # model.rectifier designs (False: no rectifier)
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
@@ -74,6 +75,7 @@ class AvatarConfig:
 
     def validate(self) -> "AvatarConfig":
         """Raise UserError for values no avatar can use (names are the config.yaml keys); returns self."""
+        check_fields(self, "model", positive=("hidden", "min_scale"), nonnegative=("sh_every_frac",))
         if not 0 <= self.sh_degree <= 3:
             raise UserError(f"model.sh_degree must be 0..3, got {self.sh_degree}")
         if self.placement not in ("face", "area"):

@@ -33,6 +33,7 @@ from rmavatar.avatar.model import Avatar
 from rmavatar.body import PoseSequence, load_body_model, posed_vertices, rest_pose
 from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.utils import UserError
+from rmavatar.utils.errors import load_error
 
 MARKER = "rmavatar-run.json"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
@@ -93,7 +94,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
-        raise UserError(f"{path} is not a readable rmavatar checkpoint: {exc}") from None
+        raise UserError(f"{path} is not a readable rmavatar checkpoint: {load_error(exc)}") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path} is not an rmavatar checkpoint")
     version = payload.get("version")

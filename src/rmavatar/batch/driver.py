@@ -26,7 +26,7 @@ from pathlib import Path
 from rmavatar.batch.jobs import Job, write_jobs_yaml
 from rmavatar.batch.results import markdown, write_results
 from rmavatar.batch.worker import ROOT_MARKER, read_json, write_json
-from rmavatar.utils import UserError
+from rmavatar.utils import UserError, check_writable_folder
 
 RAY_VERSION = "2.60.0"  # what `pip install 'rmavatar[cluster]'` installs and the tests run
 INSTALL_HINT = f"pip install 'rmavatar[cluster]'  (or: pip install ray=={RAY_VERSION})"
@@ -57,6 +57,7 @@ def check_root(root: Path) -> None:
     """UserError unless ROOT is new, empty (but for our lock file) or an earlier batch's; writes nothing."""
     if root.exists() and not root.is_dir():
         raise UserError(f"--out {root} exists and is not a folder")
+    check_writable_folder(root / ROOT_MARKER, f"--out {root}", create=True)
     marker = root / ROOT_MARKER
     if root.is_dir() and any(p.name != LOCK_FILE for p in root.iterdir()) and not marker.is_file():
         raise UserError(f"--out {root} is not empty and holds no rmavatar batch ({ROOT_MARKER} missing): "

@@ -21,7 +21,8 @@ import statistics
 import time
 from pathlib import Path
 
-from rmavatar.utils import UserError, atomic_path, check_writable_folder
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import output_file
 
 # rmavatar.train.config.ABLATIONS
 VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss", "local_rectifier")
@@ -173,14 +174,13 @@ def format_table(result: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.json:  # fail now, not after an hour of training, if the result cannot be written
-        check_writable_folder(Path(args.json).resolve(), f"--json {args.json}")
+    # --json was checked by the bench command before anything ran (rmavatar.utils.outputs)
     result = run_quality(args.work, args.variants, args.data, args.size, args.iters, args.seeds,
                          args.max_gaussians, args.threads, args.device, progress=not args.quiet)
     table = format_table(result)
     print("\n" + table)
     if args.json:
-        with atomic_path(args.json) as tmp:
+        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(result, indent=2) + "\n")
         print(f"\nwrote {args.json}")
     return 0

@@ -177,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
 
     from rmavatar.render import rasterize
     from rmavatar.render.reference import reference_rasterize
-    from rmavatar.utils import UserError, atomic_path
+    from rmavatar.utils import UserError
+    from rmavatar.utils.outputs import output_file
 
     configs = [_parse_config(c) for c in args.configs]
     if args.repeats < 1 or args.warmup < 0:
@@ -252,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
         "reference": reference,
     }
     if args.json:
-        with atomic_path(args.json) as tmp:
+        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(report, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0

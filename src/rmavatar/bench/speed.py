@@ -217,7 +217,8 @@ def bench_rendering(trained, data: str, sizes: list[int], ref_size: int, repeats
 # ---------------------------------------------------------------------------------------------------- run
 def _check(args) -> tuple[int, int]:
     from rmavatar.bench.raster import _parse_config
-    from rmavatar.utils import UserError, check_writable_folder
+    from rmavatar.utils import UserError
+    from rmavatar.utils.outputs import check_output_file
 
     for name in ("size", "gaussians", "repeats", "steps", "threads", "render_reference_size"):
         if getattr(args, name) < 1:
@@ -231,7 +232,7 @@ def _check(args) -> tuple[int, int]:
     if args.run is not None and not Path(args.run).is_dir():
         raise UserError(f"--run {args.run}: no such run folder")
     if args.json:  # fail now, not after minutes of measuring, if the result cannot be written
-        check_writable_folder(Path(args.json).resolve(), f"--json {args.json}")
+        check_output_file(args.json, option="--json", overwrite=getattr(args, "overwrite", False))
     ref_n, ref_size = _parse_config(args.raster_reference)
     if ref_n < 1:
         raise UserError(f"--raster-reference needs at least one Gaussian, got {args.raster_reference!r}")
@@ -278,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.bench.step import synthetic_subject
     from rmavatar.bench.timing import machine_info
     from rmavatar.train.trainer import set_threads
-    from rmavatar.utils import atomic_path
+    from rmavatar.utils.outputs import output_file
 
     t_start = time.perf_counter()
     load_start = list(os.getloadavg())
@@ -320,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
         raise RuntimeError(f"a speed ratio is not a positive finite number: {ratios}")
     _print(report)
     if args.json:
-        with atomic_path(args.json) as tmp_path:
+        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp_path:
             Path(tmp_path).write_text(json.dumps(report, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0

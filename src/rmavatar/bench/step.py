@@ -214,9 +214,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"  density control pass   {res['density_control_once_s']:.3f} s (once per interval)")
     print(f"  machine load average   {', '.join(f'{x:.1f}' for x in res['machine']['load_average'])}")
     if args.json:
-        from rmavatar.utils import atomic_path
+        from rmavatar.utils.outputs import output_file
 
-        with atomic_path(args.json) as t:
+        with output_file(args.json, option="--json", overwrite=args.overwrite) as t:
             Path(t).write_text(json.dumps(res, indent=2))
         print(f"wrote {args.json}")
     return 0

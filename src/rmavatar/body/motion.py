@@ -19,6 +19,7 @@ import numpy as np
 
 from rmavatar.body.poses import PoseSequence
 from rmavatar.utils import UserError
+from rmavatar.utils.errors import load_error
 
 
 @dataclass
@@ -47,24 +48,29 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
-        raise UserError(f"cannot read motion file {path}: {exc}") from exc
+        raise UserError(f"cannot read motion file {path}: {load_error(exc)}") from None
     trans = betas = fps = None
     amass = False
-    if isinstance(data, np.ndarray):
-        poses = data
-    else:
-        with data:
-            if "poses" not in data.files:
-                raise UserError(f"motion file {path} has no 'poses' array (it has: {', '.join(data.files)})")
-            poses = data["poses"]
-            trans = data["trans"] if "trans" in data.files else data.get("transl")
-            betas = data["betas"] if "betas" in data.files else None
-            amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
-            for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
-                if key in data.files:
-                    fps = float(np.asarray(data[key]).reshape(-1)[0])
-                    break
-    poses = np.asarray(poses, dtype=np.float64)
+    try:
+        if isinstance(data, np.ndarray):
+            poses = data
+        else:
+            with data:
+                if "poses" not in data.files:
+                    raise UserError(f"motion file {path} has no 'poses' array (it has: {', '.join(data.files)})")
+                poses = data["poses"]
+                trans = data["trans"] if "trans" in data.files else data.get("transl")
+                betas = data["betas"] if "betas" in data.files else None
+                amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
+                for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
+                    if key in data.files:
+                        fps = float(_numbers(data[key], path, key).reshape(-1)[0])
+                        break
+    except ValueError as exc:  # an npz member is read only when accessed: object arrays fail here
+        if "allow_pickle" not in str(exc):
+            raise
+        raise UserError(f"cannot read motion file {path}: {load_error(exc)}") from None
+    poses = _numbers(poses, path, "poses")
     if poses.ndim == 1 and poses.size in (72, 156, 165):
         poses = poses[None]
     if poses.ndim != 2 or poses.shape[1] not in (72, 156, 165):
@@ -81,13 +87,13 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     N = len(poses)
     if trans is None:
         trans = np.zeros((N, 3))
-    trans = np.asarray(trans, dtype=np.float64)
+    trans = _numbers(trans, path, "trans")
     if trans.shape != (N, 3):
         raise UserError(f"motion file {path}: trans must have shape ({N}, 3), got {trans.shape}")
     if not np.isfinite(trans).all():
         raise UserError(f"motion file {path}: trans contains NaN/inf")
     if betas is not None:
-        betas = np.asarray(betas, dtype=np.float32).reshape(-1)[:10]
+        betas = _numbers(betas, path, "betas").astype(np.float32).reshape(-1)[:10]
     if amass and not keep_up:
         poses, trans = _z_up_to_y_up(poses, trans)
     return Motion(
@@ -97,6 +103,14 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
         betas=betas,
         fps=fps,
     )
+
+
+def _numbers(value, path: Path, key: str) -> np.ndarray:
+    """``value`` as float64; UserError naming the file and key for strings or other non-numbers."""
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool) or arr.size == 0:
+        raise UserError(f"motion file {path}: '{key}' must hold numbers, got {arr.dtype} of shape {arr.shape}")
+    return arr.astype(np.float64)
 
 
 def _z_up_to_y_up(poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

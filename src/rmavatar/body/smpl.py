@@ -19,6 +19,7 @@ import torch
 from rmavatar.body.base import SMPL_PARENTS, BodyModel, BodyOutput, check_pose_inputs
 from rmavatar.body.lbs import axis_angle_to_matrix, lbs
 from rmavatar.utils import UserError
+from rmavatar.utils.errors import load_error
 
 REQUIRED_KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
 
@@ -126,7 +127,7 @@ def read_smpl_file(path: str | Path) -> dict[str, np.ndarray]:
                     if key in data.files:
                         raw[key] = data[key]
         except ValueError as exc:  # an object array would need allow_pickle, which could run code
-            raise UserError(f"{path}: holds pickled objects in a needed array ({exc}); save plain arrays") from exc
+            raise UserError(f"{path}: {load_error(exc)}") from None
         except Exception as exc:
             raise UserError(f"cannot read SMPL model file {path}: {exc}") from exc
     elif path.suffix == ".pkl":

@@ -21,6 +21,7 @@ import numpy as np
 
 from rmavatar.capture.fit import FitConfig
 from rmavatar.utils import UserError
+from rmavatar.utils.outputs import check_output_folder
 
 # A phone's main camera (26 mm equivalent, with the crop of video stabilisation) sees about 65 degrees
 # across the longer side of the frame: f = 0.8 x the longer side.
@@ -85,16 +86,19 @@ def intrinsics(width: int, height: int, fov: float | None = None, focal: float |
     return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=np.float64)
 
 
-def check_out(out: Path, source: Path) -> None:
-    """OUT may be new, empty or an earlier dataset (replaced on success); never the input itself."""
+DATASET_KIND = "capture-dataset"
+DATASET_NAMES = ("meta.yaml", "images", "masks", "*.npz", "contact_sheet.png")
+
+
+def check_out(out: Path, source: Path, overwrite: bool = False) -> None:
+    """OUT may be new, empty or an earlier capture's dataset (replaced on success, see
+    :mod:`rmavatar.utils.outputs`); never the input itself."""
     src = source.resolve()
     if out.resolve() == src or out.resolve() in src.parents:
         raise UserError(f"--out {out} holds the input {source}; write the dataset elsewhere")
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; give a folder for the dataset")
-    if out.is_dir() and any(out.iterdir()) and not (out / "meta.yaml").is_file():
-        raise UserError(f"--out {out} is a non-empty folder that is not an rmavatar dataset; "
-                        f"refusing to replace it (choose a new or empty folder)")
+    check_output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES)
 
 
 @dataclass
@@ -192,7 +196,7 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
 
 
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
-            progress: bool = True) -> dict:
+            progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
     summary (frames kept and dropped, timings, the body, the camera, the fit's final losses)."""
     from rmavatar.body import load_body_model
@@ -201,20 +205,21 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     from rmavatar.capture.sheet import contact_sheet
     from rmavatar.data import Camera, NativeMeta, write_native
     from rmavatar.data.io import read_image, read_mask
-    from rmavatar.utils import atomic_dir, check_writable_folder, resolve_device
+    from rmavatar.utils import resolve_device
+    from rmavatar.utils.files import tmp_prefix
+    from rmavatar.utils.outputs import output_folder
 
     cfg = cfg or CaptureConfig()
     cfg.check()
     out = Path(out)
     source = open_source(input_path)
-    check_out(out, source.path)
+    check_out(out, source.path, overwrite)
     device = resolve_device(cfg.device)
     body = load_body_model(cfg.body).to(device)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
-    check_writable_folder(out, f"--out {out}")
     timings = {}
-    scratch = Path(tempfile.mkdtemp(prefix=f".{out.name}.frames-", dir=parent))
+    scratch = Path(tempfile.mkdtemp(prefix=tmp_prefix(out.name + ".frames"), dir=parent))
     try:
         t0 = time.perf_counter()
         clip, size = _detect(source, cfg, scratch, progress)
@@ -245,7 +250,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
                   "transl": result.transl}
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
         t0 = time.perf_counter()
-        with atomic_dir(out) as tmp:
+        with output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
             images = (read_image(scratch / f"image{i:06d}.png") for i in range(n))
             masks = (read_mask(scratch / f"mask{i:06d}.png") for i in range(n))
             write_native(tmp, meta, camera, params, images, masks, progress=progress)

@@ -66,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    from rmavatar.utils import outputs
+
+    outputs.command_name = f"rmavatar {args.command}"
     try:
         return int(modules[args.command].run(args) or 0)
     except UserError as exc:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -35,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bg", default="white", help="background: white (default), black, gray or R,G,B in 0..1")
     parser.add_argument("--fov", type=float, default=30.0, help="vertical field of view in degrees (default 30)")
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    add_overwrite_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,12 +46,10 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.animate.video import check_output
     from rmavatar.avatar import load_trained
     from rmavatar.body import load_motion, motion_to_sequence
-    from rmavatar.utils import UserError
-
-    if args.fps is not None and args.fps <= 0:
-        raise UserError(f"--fps must be positive, got {args.fps}")
     background = parse_background(args.bg)
-    check_output(args.out)  # before any slow work
+    # Every option is checked before any slow work (the fps placeholder stands for the motion's rate).
+    VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=args.fps or 30.0).validate()
+    check_output(args.out, args.overwrite)
     motion = load_motion(args.motion)
     seq = motion_to_sequence(motion, source=str(args.motion))
     step = 1
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         step = max(1, round(motion.fps / args.fps))
     seq = seq.select(parse_frame_range(args.frames, len(seq), step))
     trained = load_trained(args.run, device=args.device)
-    opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=fps)
+    opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=fps, overwrite=args.overwrite)
     n = animate_video(trained, seq, args.out, camera=args.camera, opts=opts)
     print(f"wrote {n} frames at {fps:g} fps to {args.out}")
     return 0

@@ -10,6 +10,8 @@ import argparse
 import importlib
 from pathlib import Path
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 # name -> (module, one-line help). Add a row per benchmark.
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "raster": ("rmavatar.bench.raster", "rasterizer forward / forward+backward time, peak memory, Gaussians/s"),
@@ -23,10 +25,26 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="benchmark", metavar="NAME", required=True)
     for name, (_, help_text) in BENCHMARKS.items():
-        _OPTIONS[name](sub.add_parser(name, help=help_text, description=help_text))
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        _OPTIONS[name](p)
+        if any("--json" in a.option_strings for a in p._actions):
+            add_overwrite_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    from rmavatar.utils import UserError
+    from rmavatar.utils.outputs import check_output_file
+
+    # The options every benchmark shares, checked before any measuring.
+    if getattr(args, "json", None):
+        check_output_file(args.json, option="--json", overwrite=args.overwrite)
+    for name in ("threads", "gaussians", "avatar_gaussians", "repeats", "steps", "iters", "warmup"):
+        value = getattr(args, name, None)
+        least = 0 if name in ("threads", "warmup") else 1
+        if value is not None and value < least:
+            raise UserError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
+    if getattr(args, "size", None) is not None and not 32 <= args.size <= 8192:
+        raise UserError(f"--size must be in 32..8192 pixels, got {args.size}")
     return int(importlib.import_module(BENCHMARKS[args.benchmark][0]).run(args) or 0)
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -38,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--views", default="front,side", help="comma-separated: front, side, back")
     show.add_argument("--size", type=int, default=512, help="pixels per view (default 512)")
     show.add_argument("--out", required=True, help="output PNG path")
+    add_overwrite_argument(show)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,11 +49,15 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.body import load_body_model, load_motion
     from rmavatar.body.lbs import axis_angle_to_matrix, matrix_to_axis_angle
     from rmavatar.body.render import render_mesh
-    from rmavatar.utils import UserError, atomic_path
+    from rmavatar.utils import UserError
+    from rmavatar.utils.outputs import check_output_file, output_file
 
     views = tuple(v.strip() for v in args.views.split(",") if v.strip())
     if not views or any(v not in ("front", "side", "back") for v in views):
         raise UserError(f"--views must list front, side or back, got {args.views!r}")
+    if not 16 <= args.size <= 4096:
+        raise UserError(f"--size must be in 16..4096 pixels per view, got {args.size}")
+    check_output_file(args.out, option="--out", overwrite=args.overwrite, suffixes=(".png",))
     body = load_body_model(args.body, args.gender)
     global_orient = torch.zeros(1, 3)
     body_pose = torch.zeros(1, 69)
@@ -81,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         out = body(None, global_orient, body_pose, torch.zeros(1, 3))
     image = render_mesh(out.vertices[0].numpy(), body.faces.numpy(), size=args.size, views=views,
                         points=out.joints[0].numpy())  # fmt: skip
-    with atomic_path(args.out) as tmp:
+    with output_file(args.out, option="--out", overwrite=args.overwrite, suffixes=(".png",)) as tmp:
         image.save(tmp, format="PNG")
     print(f"wrote {args.out}: {body.spec}, {label}, {out.vertices.shape[1]} vertices")
     return 0

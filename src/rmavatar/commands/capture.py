@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 DESCRIPTION = """\
 Turn a video of one person (or a folder of its frames) into a native dataset with estimated poses,
 offline: MediaPipe finds the person's mask and landmarks in every frame, the body (Anny by default)
@@ -31,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT",
                         help="a video file (mp4, mov, avi, webm, mkv) or a folder of images (sorted by name)")
     parser.add_argument("--out", required=True, metavar="DATA",
-                        help="the dataset folder to write (new, empty, or an earlier dataset, which is replaced)")
+                        help="the dataset folder to write (new, empty, or an earlier capture dataset, which is replaced)")
     camera = parser.add_mutually_exclusive_group()
     camera.add_argument("--fov", type=float, metavar="DEGREES",
                         help="the camera's horizontal field of view (across the frame's width)")
@@ -50,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fitting iterations (default 400, after 100 to start)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_overwrite_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         fit.iters = args.iters
     cfg = CaptureConfig(body=args.body, fov=args.fov, focal=args.focal, fps=args.fps, size=args.size,
                         test_fraction=args.test_fraction, device=args.device, fit=fit)
-    s = capture(args.input, args.out, cfg, progress=not args.quiet)
+    s = capture(args.input, args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     dropped = len(s["no_person"]) + len(s["other_person"])
     print(f"wrote {s['out']}: {s['frames']['train']} train + {s['frames']['test']} test frames of "
           f"{s['camera']['width']}x{s['camera']['height']} (fx {s['camera']['fx']:.1f} px), body {s['body']}")

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters", type=int, default=d.iters, help=f"training iterations (default {d.iters})")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder that holds other files (they are kept; none may have a name "
+                             "the demo writes)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,8 +41,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--size must be at least 32 pixels (LPIPS needs it), got {args.size}")
     if args.iters < 1:
         raise UserError(f"--iters must be positive, got {args.iters}")
+    if args.size > 4096:
+        raise UserError(f"--size must be at most 4096 pixels, got {args.size}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
     from rmavatar.demo import DemoConfig, run_demo
 
-    cfg = DemoConfig(out=args.out, seed=args.seed, size=args.size, iters=args.iters, threads=args.threads)
+    cfg = DemoConfig(out=args.out, seed=args.seed, size=args.size, iters=args.iters, threads=args.threads,
+                     overwrite=args.overwrite)
     run_demo(cfg, progress=not args.quiet)
     return 0

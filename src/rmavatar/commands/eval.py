@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
-import os
 from pathlib import Path
 
-from rmavatar.utils import UserError, atomic_path
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import add_overwrite_argument, check_output_file, write_json
 
 DESCRIPTION = """\
 Render every frame of a dataset split with a trained avatar and score it against the ground truth:
@@ -43,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, metavar="N", help="evaluate only the first N frames of the split")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite_argument(parser)
 
 
 def default_images_dir(json_path: Path) -> Path:
@@ -54,24 +54,21 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.evaluate.run import check_images_dir, evaluate_run
 
     out = Path(args.json)
-    parent = out.parent if str(out.parent) else Path(".")
     # Fail before the long part, not after it.
-    if out.is_dir():
-        raise UserError(f"--json {out} is a folder; give a file name")
-    if not parent.is_dir():
-        raise UserError(f"--json {out}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise UserError(f"--json {out}: folder {parent} is not writable")
+    check_output_file(out, option="--json", overwrite=args.overwrite)
+    if args.frames is not None and args.frames < 1:
+        raise UserError(f"--frames must be >= 1, got {args.frames}")
+    if args.size is not None and args.size < 32:
+        raise UserError(f"--size must be at least 32 pixels (LPIPS needs 32x32), got {args.size}")
     images = None if args.no_images else (Path(args.images) if args.images else default_images_dir(out))
     if images is not None:
-        check_images_dir(images)
+        check_images_dir(images, args.overwrite)
 
     result = evaluate_run(
         args.run, data=args.data, split=args.split, bg=args.bg, size=args.size, out_dir=images,
-        device=args.device, max_frames=args.frames, progress=not args.quiet,
+        device=args.device, max_frames=args.frames, progress=not args.quiet, overwrite=args.overwrite,
     )
-    with atomic_path(out) as tmp:
-        tmp.write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    write_json(out, result, overwrite=args.overwrite)
 
     p = result["protocol"]
     m = result["mean"]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -27,6 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
                         help="pose when no --motion is given: tpose (the zero pose, default), apose (arms down "
                              "45 degrees) or train (the median pose of the training frames)")
+    add_overwrite_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,8 +38,9 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.avatar import load_trained
     from rmavatar.export.export import check_ply_output, export_ply, pose_for_export
 
-    out = check_ply_output(Path(args.ply))
+    out = check_ply_output(Path(args.ply), args.overwrite)
     trained = load_trained(args.run)
-    n = export_ply(trained, pose_for_export(trained, args.motion, args.frame, args.pose), out)
+    n = export_ply(trained, pose_for_export(trained, args.motion, args.frame, args.pose), out,
+                   overwrite=args.overwrite)
     print(f"wrote {n} Gaussians to {out}")
     return 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 DESCRIPTION = """\
 Summarise a dataset: its kind (native, peoplesnapshot, zju), name, gender/body, frames per split, image
 size, camera intrinsics and position, and the range of its SMPL-format parameters per split.
@@ -35,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "projected by the frame's camera (checks that poses, cameras and masks agree)")
     parser.add_argument("--frames", type=int, default=4, help="frames per split on the --overlay sheet")
     parser.add_argument("--check", action="store_true",
-                        help="read every frame's image and mask (finds unreadable or missized files)")
+                        help="also read every frame's image and mask: unreadable or missized files, masks "
+                             "that are all empty or saved 0/1 (cameras and poses are always checked)")
+    add_overwrite_argument(parser)
 
 
 def _print(summary: dict) -> None:
@@ -60,33 +64,34 @@ def _print(summary: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from rmavatar.data import load_dataset
     from rmavatar.data.registry import detect_kind, parse_spec
     from rmavatar.data.summary import overlay_sheet, summarize
-    from rmavatar.utils import atomic_path
+    from rmavatar.data.checks import check_dataset
+    from rmavatar.utils import UserError
+    from rmavatar.utils.outputs import check_output_file, output_file, write_json
 
+    if args.frames < 1:
+        raise UserError(f"--frames must be >= 1, got {args.frames}")
+    if args.size is not None and not 1 <= args.size <= 8192:
+        raise UserError(f"--size must be in 1..8192 pixels, got {args.size}")
+    if args.json and args.json != "-":
+        check_output_file(args.json, option="--json", overwrite=args.overwrite)
+    if args.overlay:
+        check_output_file(args.overlay, option="--overlay", overwrite=args.overwrite, suffixes=(".png",))
     kind, path, _ = parse_spec(args.data)
     kind = kind or (detect_kind(path) if path.is_dir() else None)
     options = {"body": args.body} if args.body and kind == "zju" else {}
     ds = load_dataset(args.data, size=args.size, cache_mb=64, **options)
     summary = summarize(ds)
     if args.check:
-        total = sum(ds.num_frames(s) for s in ds.splits)
-        with tqdm(total=total, desc="checking frames", unit="frame") as bar:
-            for s in ds.splits:
-                for i in range(ds.num_frames(s)):
-                    ds.frame(s, i)
-                    bar.update(1)
-        summary["checked"] = True
+        summary["checked"] = check_dataset(ds, progress=True)
     if args.json == "-":
         print(json.dumps(summary, indent=2))
     else:
         _print(summary)
     if args.json and args.json != "-":
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        write_json(args.json, summary, overwrite=args.overwrite)
         print(f"summary written to {args.json}")
     if args.overlay:
         from PIL import Image
@@ -97,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         body = load_body_model(spec, gender=ds.gender)
         small = load_dataset(args.data, size=args.size or 256, cache_mb=64, **options)
         sheet = overlay_sheet(small, body, per_split=max(1, args.frames))
-        with atomic_path(args.overlay) as tmp:
+        with output_file(args.overlay, option="--overlay", overwrite=args.overwrite, suffixes=(".png",)) as tmp:
             Image.fromarray(sheet).save(tmp)
         if args.json != "-":
             print(f"overlay ({spec}) written to {args.overlay}")

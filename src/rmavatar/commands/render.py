@@ -8,6 +8,7 @@ Avatar mode: ``rmavatar render RUN --turntable --out turn.mp4``.
 from __future__ import annotations
 
 import argparse
+import math
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default white)")
     parser.add_argument("--backend", default="auto", choices=("auto", "cpu", "gsplat"), help="rasterizer backend")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing output rmavatar cannot prove it wrote (files it did not write "
+                             "are never deleted)")
     parser.epilog = "Examples:\n  rmavatar render --random 20000 --out figure.png\n  rmavatar render --ply point_cloud.ply --out splat.png --size 768"
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     _turntable_arguments(parser)
@@ -52,17 +56,20 @@ def run(args: argparse.Namespace) -> int:
 
     from rmavatar.render import rasterize
     from rmavatar.render.scenes import figure_scene, orbit_camera
-    from rmavatar.utils import UserError, atomic_path
+    from rmavatar.utils import UserError
+
+    from rmavatar.utils.outputs import check_output_file, output_file
 
     if args.size <= 0 or args.size > 8192:
         raise UserError(f"--size must be 1..8192, got {args.size}")
+    if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in args.background):
+        raise UserError(f"--background values must be in 0..1, got {tuple(args.background)}")
     if args.run is not None:
         return _run_turntable(args)
-    if not args.out.lower().endswith(".png"):
-        raise UserError(f"--out {args.out}: give a .png file name")
+    check_output_file(args.out, option="--out", overwrite=args.overwrite, suffixes=(".png",))
     if args.random is not None:
-        if args.random < 0:
-            raise UserError("--random needs N >= 0")
+        if args.random < 1:
+            raise UserError(f"--random needs N >= 1 Gaussians, got {args.random}")
         scene = figure_scene(args.random, seed=args.seed, sh_degree=3)
         scene["sh_degree"] = 3
         viewmat, K = orbit_camera(args.size, args.azimuth)
@@ -83,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
             backend=args.backend,
         )
     pixels = (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-    with atomic_path(args.out) as tmp:
+    with output_file(args.out, option="--out", overwrite=args.overwrite, suffixes=(".png",)) as tmp:
         iio.imwrite(tmp, pixels)
     print(f"wrote {args.out} ({args.size}x{args.size}, {int(info['visible'].sum())} of {len(scene['means'])} "
           f"Gaussians visible, backend {info['backend']})")
@@ -121,11 +128,10 @@ def _run_turntable(args: argparse.Namespace) -> int:
     if args.fps <= 0:
         raise UserError(f"--fps must be positive, got {args.fps}")
     background = tuple(float(v) for v in args.background)
-    if not all(0.0 <= v <= 1.0 for v in background):
-        raise UserError(f"--background values must be in 0..1, got {background}")
-    check_output(args.out)  # before any slow work
+    opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=args.fps,
+                        overwrite=args.overwrite).validate()
+    check_output(args.out, args.overwrite)  # before any slow work
     trained = load_trained(args.run)
-    opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=args.fps)
     n = turntable_video(trained, args.out, num_frames=args.frames, pose=args.pose, opts=opts,
                         elevation_deg=args.elevation)
     print(f"wrote a {n}-frame turntable of {args.run} to {args.out}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from rmavatar.utils.outputs import add_overwrite_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
@@ -13,7 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "novel_pose [/ novel_view] splits) plus OUT/contact_sheet.png. Deterministic for a seed."
     )
     parser.epilog = "Example: rmavatar synth data/synth0 --size 256 --seed 0   (see docs/synth.md)"
-    parser.add_argument("out", help="output folder (written atomically; an existing dataset is replaced)")
+    parser.add_argument("out", help="output folder (written atomically; an earlier synth dataset there is replaced, "
+                        "anything else is refused)")
     parser.add_argument("--size", type=int, default=256, help="image width and height in pixels (default 256)")
     parser.add_argument("--seed", type=int, default=0, help="picks the outfit colours, motion details, noise")
     parser.add_argument("--preset", default="neutral", choices=("neutral", "male", "female", "child"),
@@ -31,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tracker-like noise (degrees, per axis) on the stored poses; images are unaffected")
     parser.add_argument("--ss", type=int, default=3, help="supersampling: samples per pixel side (default 3)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = SynthConfig(size=args.size, seed=args.seed, preset=args.preset, train=args.train, test=args.test,
                       novel_pose=args.novel_pose, novel_views=args.novel_views, turns=args.turns,
                       pose_noise=args.pose_noise, ss=args.ss)  # fmt: skip
-    summary = synthesize(args.out, cfg, progress=not args.quiet)
+    summary = synthesize(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     frames = ", ".join(f"{k} {v}" for k, v in summary["frames"].items())
     print(f"wrote {summary['out']} ({frames}) in {summary['seconds']:.1f} s")
     print(f"contact sheet: {summary['out']}/contact_sheet.png")

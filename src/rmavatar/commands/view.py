@@ -31,6 +31,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 for all)")
 
 
+def _check_host(host: str) -> None:
+    """UserError unless this machine can listen on ``host`` (else the server retries ports for ever)."""
+    import socket
+
+    from rmavatar.utils import UserError
+
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind, proto) as sock:
+            sock.bind(addr)
+    except (OSError, UnicodeError) as exc:
+        raise UserError(f"--host {host}: cannot listen on this address ({getattr(exc, 'strerror', None) or exc}); "
+                        "use 127.0.0.1, 0.0.0.0 or an address of this machine") from None
+
+
 def run(args: argparse.Namespace) -> int:
     import time
 
@@ -42,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port must be in 0..65535, got {args.port}")
+    _check_host(args.host)
     seq, fps = None, 30.0
     if args.motion is not None:
         from rmavatar.body import load_motion

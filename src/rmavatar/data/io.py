@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import importlib
+import pickle
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -9,6 +13,7 @@ import numpy as np
 from PIL import Image
 
 from rmavatar.utils import UserError
+from rmavatar.utils.errors import load_error
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -27,6 +32,42 @@ def read_image(path: Path) -> np.ndarray:
     return arr
 
 
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickles numpy arrays, scalars and plain containers only: any other class (the way a hostile file
+    runs code) is refused."""
+
+    def find_class(self, module: str, name: str):
+        if module in ("numpy", "numpy.core.multiarray", "numpy._core.multiarray") and \
+                name in ("ndarray", "dtype", "_reconstruct", "scalar"):
+            for where in (module, "numpy._core.multiarray", "numpy.core.multiarray", "numpy"):
+                with contextlib.suppress(ImportError, AttributeError):
+                    return getattr(importlib.import_module(where), name)
+        if module == "builtins" and name in ("dict", "list", "tuple", "set", "frozenset", "slice", "complex"):
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"refusing to load class {module}.{name}: not an array file's")
+
+
+def load_object_npy(path: Path):
+    """A ``.npy`` file holding a pickled object array (e.g. ZJU-MoCap's dicts) -> the array's single item
+    (or the array), unpickled with numpy classes only; UserError naming the file otherwise."""
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            _, _, dtype = read(fh)
+            if not dtype.hasobject:
+                fh.seek(0)
+                return np.load(fh, allow_pickle=False)
+            arr = _ArrayUnpickler(fh, encoding="latin1").load()
+    except FileNotFoundError:
+        raise UserError(f"{path} does not exist") from None
+    except pickle.UnpicklingError as exc:
+        raise UserError(f"cannot read {path}: {exc}") from None
+    except Exception as exc:
+        raise UserError(f"cannot read {path}: {load_error(exc)}") from None
+    return arr.item() if isinstance(arr, np.ndarray) and arr.shape == () else arr
+
+
 def _read_raw(path: Path) -> np.ndarray:
     """A mask file's values [H,W] as stored (palette images give their indices, not colours)."""
     try:
@@ -39,7 +80,7 @@ def _read_raw(path: Path) -> np.ndarray:
     except FileNotFoundError:
         raise UserError(f"mask {path} does not exist") from None
     except Exception as exc:
-        raise UserError(f"cannot read mask {path}: {exc}") from None
+        raise UserError(f"cannot read mask {path}: {load_error(exc)}") from None
     if arr.ndim == 3 and arr.shape[2] in (2, 4) and np.ptp(arr[..., -1]) > 0:
         arr = arr[..., -1]  # a cut-out saved with transparency: the alpha is the mask
     elif arr.ndim == 3:
@@ -67,7 +108,17 @@ def read_mask(path: Path) -> np.ndarray:
         return arr.astype(np.float32)
     if arr.dtype == np.uint16 or arr.max(initial=0) > 255:
         return arr.astype(np.float32) / 65535.0
+    if arr.max(initial=0) == 1:
+        # Saved as 0/1 instead of 0-255: read as 0-255 every target would be background.
+        if path.parent not in _WARNED_01:
+            _WARNED_01.add(path.parent)
+            warnings.warn(f"masks in {path.parent} hold only 0 and 1 (e.g. {path.name}): read as 0/1 masks "
+                          "(save them as 0-255 to silence this)", UserWarning, stacklevel=2)
+        return arr.astype(np.float32)
     return arr.astype(np.float32) / 255.0
+
+
+_WARNED_01: set = set()
 
 
 def read_binary_mask(path: Path) -> np.ndarray:
@@ -119,7 +170,7 @@ def load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except Exception as exc:
-        raise UserError(f"cannot read {path}: {exc}") from None
+        raise UserError(f"cannot read {path}: {load_error(exc)}") from None
     missing = [k for k in keys if k not in data]
     if missing:
         raise UserError(f"{path} is missing {missing} (it has {sorted(data)})")

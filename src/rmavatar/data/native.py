@@ -28,7 +28,10 @@ import yaml
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
 from rmavatar.data.io import load_npz, to_uint8, write_png
 from rmavatar.render.camera import Camera
-from rmavatar.utils import UserError, atomic_dir
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import check_output_folder, output_folder
+
+NATIVE_KIND = "native-dataset"
 
 FORMAT = "rmavatar-native"
 VERSION = 1
@@ -150,15 +153,13 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
     global_orient [N,3], body_pose [N,69], transl [N,3] (N = the frame count). images: N arrays
     [H,W,3] (uint8, or float in [0,1]); masks: N arrays [H,W] (float in [0,1], bool, or uint8 0-255).
     Both may be iterators: frames are written as they come, so a long video streams.
-    An existing ``out_dir`` is replaced only if it is empty or a native dataset (has meta.yaml).
-    Returns the path written.
+    An existing ``out_dir`` is replaced only if it is empty or a dataset written by this function (its
+    ``.rmavatar`` marker, see :mod:`rmavatar.utils.outputs`). Returns the path written.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"cannot write a dataset to {out_dir}: it is a file")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "meta.yaml").is_file():
-        raise UserError(f"refusing to replace {out_dir}: it is a non-empty folder that is not an rmavatar "
-                        f"dataset (no meta.yaml); choose a new or empty folder")
+    check_output_folder(out_dir, NATIVE_KIND, option="dataset")
     meta = _as_meta(meta)
     p = _check_params(params, "write_native")
     n = p["global_orient"].shape[0]
@@ -171,7 +172,7 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
 
     from tqdm import tqdm
 
-    with atomic_dir(out_dir) as tmp:
+    with output_folder(out_dir, NATIVE_KIND, option="dataset") as tmp:
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         size = None

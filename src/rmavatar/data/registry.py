@@ -69,4 +69,10 @@ def load_dataset(spec: str | Path, size=None, *, cache_mb: float = 1024.0, **opt
         from rmavatar.data.peoplesnapshot import open_peoplesnapshot as opener
     else:
         from rmavatar.data.zju import open_zju as opener
-    return opener(path, size=size, cache_mb=cache_mb, **spec_options)
+    ds = opener(path, size=size, cache_mb=cache_mb, **spec_options)
+    from rmavatar.data.checks import check_cameras, check_params
+
+    # Cheap (no pixels): a zero focal length or a NaN pose is an error here, not a crash in a render.
+    check_cameras(ds)
+    check_params(ds)
+    return ds

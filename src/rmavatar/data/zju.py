@@ -19,7 +19,7 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
-from rmavatar.data.io import read_binary_mask
+from rmavatar.data.io import load_object_npy, read_binary_mask
 from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
 
@@ -153,10 +153,7 @@ def _subject_id(name: str) -> str | None:
 
 
 def _load_annots(path: Path) -> dict:
-    try:
-        annots = np.load(path, allow_pickle=True).item()
-    except Exception as exc:
-        raise UserError(f"cannot read {path}: {exc}") from None
+    annots = load_object_npy(path)  # numpy classes only: a hostile file cannot run code
     if not isinstance(annots, dict) or "cams" not in annots or "ims" not in annots:
         raise UserError(f"{path} must hold a dict with 'cams' and 'ims'")
     missing = [k for k in ("K", "D", "R", "T") if k not in annots["cams"]]
@@ -166,12 +163,9 @@ def _load_annots(path: Path) -> dict:
 
 
 def _load_params(path: Path) -> dict[str, np.ndarray]:
-    try:
-        d = np.load(path, allow_pickle=True).item()
-    except FileNotFoundError:
-        raise UserError(f"SMPL parameters {path} do not exist") from None
-    except Exception as exc:
-        raise UserError(f"cannot read SMPL parameters {path}: {exc}") from None
+    if not path.is_file():
+        raise UserError(f"SMPL parameters {path} do not exist")
+    d = load_object_npy(path)  # numpy classes only: a hostile file cannot run code
     want = {"poses": 72, "Rh": 3, "Th": 3, "shapes": 10}
     out = {}
     for key, width in want.items():

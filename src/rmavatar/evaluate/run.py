@@ -19,13 +19,15 @@ import numpy as np
 import torch
 
 from rmavatar import __version__
-from rmavatar.utils import UserError, atomic_dir, resolve_device
+from rmavatar.utils import UserError, resolve_device
+from rmavatar.utils.outputs import check_output_folder, output_folder
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 # The error heat map spans mean absolute error 0 .. HEAT_MAX (per pixel, averaged over RGB).
 HEAT_MAX = 0.25
-# Marker that makes an images folder recognisably ours, so a re-run may replace it.
+# A copy of the result beside the images; the folder's ownership marker is rmavatar.utils.outputs'.
 IMAGES_MARKER = "metrics.json"
+IMAGES_KIND = "eval-images"
 
 # A perceptually ordered dark-to-bright ramp (anchors of matplotlib's "inferno", as plain numbers).
 _HEAT_ANCHORS = np.array(
@@ -53,13 +55,10 @@ def _finite_or_none(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def check_images_dir(path: Path) -> None:
-    """Refuse to replace a non-empty folder that an earlier evaluation did not write."""
-    if path.exists() and (not path.is_dir() or (any(path.iterdir()) and not (path / IMAGES_MARKER).is_file())):
-        raise UserError(
-            f"images folder {path} exists and was not written by rmavatar eval ({IMAGES_MARKER} missing): "
-            "refusing to replace it; choose another folder"
-        )
+def check_images_dir(path: Path, overwrite: bool = False) -> None:
+    """Refuse an images folder that holds files an earlier evaluation did not write (see utils.outputs)."""
+    check_output_folder(path, IMAGES_KIND, option="--images", overwrite=overwrite,
+                        writes=("*.png", IMAGES_MARKER))
 
 
 def evaluate_run(
@@ -73,6 +72,7 @@ def evaluate_run(
     device: str = "auto",
     max_frames: int | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Render every frame of ``split`` with the run's avatar and score it against the ground truth.
 
@@ -82,7 +82,8 @@ def evaluate_run(
     at; None there means the dataset's own); device: "auto" (CUDA when available), "cpu", "cuda[:N]";
     out_dir: where to write side-by-side images (render | ground truth | error heat map) and a copy of
     the result (``metrics.json``), or None for no images; replaced atomically, and only if it is empty
-    or an earlier evaluation's; max_frames: evaluate only the first N frames of the split.
+    or an earlier evaluation's (``overwrite``: see
+    :mod:`rmavatar.utils.outputs`); max_frames: evaluate only the first N frames of the split.
 
     Returns {"protocol": {...}, "frames": [{"position", "index", "psnr", "ssim", "lpips"}, ...],
     "mean": {"psnr", "ssim", "lpips"}}. A PSNR of infinity (a pixel-exact render) is None.
@@ -103,7 +104,7 @@ def evaluate_run(
         raise UserError(f"max_frames must be >= 1, got {max_frames}")
     if out_dir is not None:
         out_dir = Path(out_dir)
-        check_images_dir(out_dir)
+        check_images_dir(out_dir, overwrite)
 
     dev = resolve_device(device)
     run = load_trained(run_dir, device=dev)
@@ -124,7 +125,9 @@ def evaluate_run(
     bar = tqdm(range(n), desc=f"eval {split}", unit="frame", disable=not progress, dynamic_ncols=True)
     with contextlib.ExitStack() as stack, torch.no_grad():
         # Images go to a temporary folder that replaces out_dir only once every frame is done.
-        tmp_dir = stack.enter_context(atomic_dir(out_dir)) if out_dir is not None else None
+        tmp_dir = stack.enter_context(
+            output_folder(out_dir, IMAGES_KIND, option="--images", overwrite=overwrite,
+                          writes=("*.png", IMAGES_MARKER))) if out_dir is not None else None
         for i in bar:
             frame = dataset.frame(split, i)
             one = poses.select(slice(i, i + 1))

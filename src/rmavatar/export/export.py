@@ -8,17 +8,13 @@ from pathlib import Path
 from rmavatar.avatar.trained import TrainedAvatar
 from rmavatar.body import PoseSequence, motion_to_sequence
 from rmavatar.export.ply import write_ply
-from rmavatar.utils import UserError, check_writable_folder
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import check_output_file
 
 
-def check_ply_output(path: Path) -> Path:
+def check_ply_output(path: Path, overwrite: bool = False) -> Path:
     """Fail early, before loading anything, when ``path`` cannot become a PLY file."""
-    if path.suffix.lower() != ".ply":
-        raise UserError(f"--ply {path}: the output file name must end in .ply")
-    if path.is_dir():
-        raise UserError(f"--ply {path} is a folder")
-    check_writable_folder(path)
-    return path
+    return check_output_file(path, option="--ply", overwrite=overwrite, suffixes=(".ply",))
 
 
 def pose_for_export(trained: TrainedAvatar, motion_path: str | None, frame: int, rest: str = "tpose") -> PoseSequence:
@@ -36,8 +32,8 @@ def pose_for_export(trained: TrainedAvatar, motion_path: str | None, frame: int,
     return seq.select(slice(k, k + 1))
 
 
-def export_ply(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike) -> int:
+def export_ply(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike, overwrite: bool = False) -> int:
     """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count."""
     gs = trained.pose(seq, 0)
-    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh())
+    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh(), overwrite=overwrite)
     return int(gs.means.shape[0])

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from rmavatar.render.gaussians import GaussianSet
-from rmavatar.utils import UserError, atomic_path
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import output_file
 
 # Opacities are clamped away from 0 and 1 so that their logits stay finite in float32.
 _OPACITY_EPS = 1e-6
@@ -78,8 +79,9 @@ def gaussians_to_ply_table(means, quats, scales, opacities, sh) -> np.ndarray:
     return np.concatenate(cols, axis=1).astype(np.float32)
 
 
-def write_ply(path: str | os.PathLike, means, quats, scales, opacities, sh) -> Path:
-    """Write Gaussians to a 3DGS PLY at ``path`` atomically (see the module docstring for units).
+def write_ply(path: str | os.PathLike, means, quats, scales, opacities, sh, *, overwrite: bool = False) -> Path:
+    """Write Gaussians to a 3DGS PLY at ``path`` atomically (see the module docstring for units); an existing
+    file is replaced only when rmavatar wrote it, or with ``overwrite`` (see :mod:`rmavatar.utils.outputs`).
 
     means [N,3], quats [N,4] wxyz, scales [N,3] linear, opacities [N] in [0,1], sh [N,K,3].
     """
@@ -90,7 +92,7 @@ def write_ply(path: str | os.PathLike, means, quats, scales, opacities, sh) -> P
     header += ["end_header"]
     path = Path(path)
     try:
-        with atomic_path(path) as tmp:
+        with output_file(path, option="--ply", overwrite=overwrite) as tmp:
             with open(tmp, "wb") as f:
                 f.write(("\n".join(header) + "\n").encode("ascii"))
                 f.write(np.ascontiguousarray(table, dtype="<f4").tobytes())

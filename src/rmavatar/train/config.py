@@ -19,6 +19,7 @@ from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError
 from rmavatar.utils.config import (
     apply_overrides,
+    check_fields,
     flatten,
     from_dict,
     read_yaml,
@@ -41,8 +42,9 @@ class DataConfig:
     split: str = "train"
 
     def validate(self) -> "DataConfig":
-        if self.size is not None and self.size < 8:
-            raise UserError(f"size must be >= 8 pixels, got {self.size}")
+        check_fields(self, "data")
+        if self.size is not None and not 8 <= self.size <= 8192:
+            raise UserError(f"data.size (--size) must be in 8..8192 pixels, got {self.size}")
         return self
 
 
@@ -58,6 +60,7 @@ class LogConfig:
     tensorboard: bool = True
 
     def validate(self) -> "LogConfig":
+        check_fields(self, "log")
         for name in ("progress_every", "tensorboard_every", "preview_every", "checkpoint_every", "max_bad_steps"):
             if getattr(self, name) < 1:
                 raise UserError(f"log.{name} must be >= 1, got {getattr(self, name)}")
@@ -83,8 +86,9 @@ class TrainConfig:
         """Raise UserError for values no run can use; returns self."""
         if self.background not in BACKGROUNDS:
             raise UserError(f"background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
-        for section in (self.data, self.model, self.loss, self.optim, self.log):
+        for section in (self.data, self.model, self.loss, self.optim, self.density, self.log):
             section.validate()
+        check_fields(self, "", nonnegative=("seed", "threads"))
         return self
 
 

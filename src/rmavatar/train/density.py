@@ -26,6 +26,7 @@ from torch import nn
 
 from rmavatar.avatar.geometry import quat_rotate
 from rmavatar.avatar.model import GAUSSIAN_PARAMS
+from rmavatar.utils.config import check_fields
 
 
 # ------------------------------------------------------------------------------------------ schedule
@@ -71,6 +72,13 @@ class DensityConfig:
     percent_dense: float = 0.01  # clone if largest rest-pose scale <= this x the body's extent, else split
     reset_opacity_to: float = 0.01  # opacity resets cap every opacity at this (3DGS)
     max_gaussians: int = 0  # 0 = unlimited
+
+    def validate(self) -> "DensityConfig":
+        """Raise UserError for values no schedule can use (names are the config.yaml keys); returns self."""
+        check_fields(self, "density", at_least_one=("reference_iters", "every", "reset_every"),
+                     nonnegative=("start", "stop", "reset_start", "grad_threshold", "prune_opacity",
+                                  "percent_dense", "reset_opacity_to", "max_gaussians"))
+        return self
 
     def schedule(self, iters: int) -> DensitySchedule:
         """The schedule for a run of ``iters`` iterations, keeping the paper's proportions (e.g. 2,000

@@ -18,6 +18,7 @@ from typing import Any, Callable
 import torch
 
 from rmavatar.utils import UserError
+from rmavatar.utils.config import check_fields
 
 
 @dataclass
@@ -34,9 +35,7 @@ class LossConfig:
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
 
     def validate(self) -> "LossConfig":
-        for f in dataclasses.fields(self):
-            if getattr(self, f.name) < 0:
-                raise UserError(f"loss.{f.name} must be >= 0, got {getattr(self, f.name)}")
+        check_fields(self, "loss", nonnegative=tuple(f.name for f in dataclasses.fields(self)))
         return self
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from rmavatar.utils import UserError
+from rmavatar.utils.config import check_fields
 
 
 def position_lr(iteration: int, total: int, lr_start: float, lr_end: float) -> float:
@@ -32,6 +33,8 @@ class OptimConfig:
     adam_eps: float = 1e-15
 
     def validate(self) -> "OptimConfig":
+        check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
+                     nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier"))
         if self.iters < 1:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:

@@ -42,7 +42,8 @@ from rmavatar.train.checkpoint import (
 )
 from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
 from rmavatar.train.losses import total_loss
-from rmavatar.utils import UserError, atomic_path, resolve_device
+from rmavatar.data.checks import check_files
+from rmavatar.utils import UserError, atomic_path, check_writable_folder, resolve_device
 
 
 # ----------------------------------------------------------------------------------------------- small parts
@@ -207,11 +208,15 @@ def train(
     iteration is written (``rmavatar batch`` reports progress with it).
     """
     run_dir = Path(run_dir)
+    check_writable_folder(run_dir / "config.yaml", f"--out {run_dir}", create=True)
     if resume:
         ckpt = _resume_payload(run_dir, data)
         cfg = from_dict(TrainConfig, ckpt["config"], where=f"{checkpoint_path(run_dir)}:config")
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
+        if cfg.optim.iters < int(ckpt["iteration"]):
+            raise UserError(f"--iters {cfg.optim.iters} is below the {ckpt['iteration']} iterations {run_dir} has "
+                            "done: give more to continue it (or start a new run)")
     else:
         ckpt = None
         if cfg is None:
@@ -220,8 +225,9 @@ def train(
         if not cfg.data.path:
             raise UserError("no dataset given (data.path is empty)")
         cfg.data.path = normalize_data_spec(cfg.data.path)
-    # Open the dataset before RUN is touched, so a wrong path leaves nothing behind.
-    load_dataset(cfg.data.path, size=cfg.data.size).num_frames(cfg.data.split)
+    # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
+    # broken frame leaves nothing behind and is not found hours in.
+    check_files(load_dataset(cfg.data.path, size=cfg.data.size), [cfg.data.split], progress=progress)
     prepare_run_dir(run_dir, cfg.data.path, resume)
     save_config(cfg, run_dir / "config.yaml")
     return Trainer(cfg, run_dir, ckpt, progress, on_iteration).run()

@@ -7,7 +7,9 @@ refuses unknown keys, so a typo in config.yaml is an error, not a silently ignor
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import os
 import types
 import typing
@@ -54,14 +56,17 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return int(value)
         raise UserError(f"{where}: expected an integer, got {value!r}")
     if tp is float:
+        number = None
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        if isinstance(value, str):  # PyYAML reads "1e-5" (no dot) as a string
-            try:
-                return float(value)
-            except ValueError:
-                pass
-        raise UserError(f"{where}: expected a number, got {value!r}")
+            number = float(value)
+        elif isinstance(value, str):  # PyYAML reads "1e-5" (no dot) as a string
+            with contextlib.suppress(ValueError):
+                number = float(value)
+        if number is None:
+            raise UserError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(number):
+            raise UserError(f"{where}: expected a finite number, got {value!r}")
+        return number
     if tp is str:
         if isinstance(value, str):
             return value
@@ -78,6 +83,27 @@ def from_dict(cls: type, data: dict, where: str = "config") -> Any:
         raise UserError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
     kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
     return cls(**kwargs)
+
+
+def check_fields(cfg: Any, section: str, *, positive: tuple[str, ...] = (), nonnegative: tuple[str, ...] = (),
+                 at_least_one: tuple[str, ...] = ()) -> None:
+    """UserError unless every number of the config dataclass ``cfg`` is finite and of its field's type, and
+    the named fields are > 0, >= 0 or >= 1 (messages name ``section.key``, the config.yaml key)."""
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        name = f"{section}.{f.name}" if section else f.name
+        if not dataclasses.is_dataclass(value):
+            _coerce(value, hints[f.name], name)  # the type: a CLI or code assignment skips from_dict
+        for v in value if isinstance(value, (tuple, list)) else (value,):
+            if isinstance(v, float) and not math.isfinite(v):
+                raise UserError(f"{name} must be a finite number, got {value!r}")
+        if f.name in positive and not value > 0:
+            raise UserError(f"{name} must be > 0, got {value!r}")
+        if f.name in nonnegative and not value >= 0:
+            raise UserError(f"{name} must be >= 0, got {value!r}")
+        if f.name in at_least_one and not value >= 1:
+            raise UserError(f"{name} must be >= 1, got {value!r}")
 
 
 def read_yaml(path: str | os.PathLike) -> dict:

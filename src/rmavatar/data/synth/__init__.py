@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rmavatar.utils import UserError, atomic_dir
+from rmavatar.utils import UserError
+from rmavatar.utils.outputs import check_output_folder, output_folder
 
 PRESETS = ("neutral", "male", "female", "child")
 
@@ -106,7 +107,11 @@ def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52)) -> list[
     return shots
 
 
-def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict:
+DATASET_KIND = "synth-dataset"
+DATASET_NAMES = ("meta.yaml", "images", "masks", "*.npz", "contact_sheet.png")
+
+
+def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwrite: bool = False) -> dict:
     """Render the subject and write a native dataset to ``out`` (atomically: a temporary folder renamed
     at the end). Also writes ``contact_sheet.png`` and ``smpl_true.npz`` (the noise-free poses) there.
     Returns a summary dict (frames per split, seconds)."""
@@ -122,8 +127,8 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict
     cfg.check()
     start = time.time()
     out = Path(out)
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "meta.yaml").is_file())):
-        raise UserError(f"{out} exists and is not an rmavatar dataset; refusing to replace it")
+    # Only a dataset synth made is replaced (see rmavatar.utils.outputs), never one converted from a video.
+    check_output_folder(out, DATASET_KIND, option="OUT", overwrite=overwrite, writes=DATASET_NAMES)
     body = load_body_model(f"anny:{cfg.preset}")
     subject = build_subject(body, cfg.seed)
     ys = body.v_template[:, 1]
@@ -167,7 +172,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True) -> dict
     )  # fmt: skip
     cameras = {"K": np.stack([s.K for s in shots]).astype(np.float32),
                "viewmat": np.stack([s.viewmat for s in shots]).astype(np.float32)}  # fmt: skip
-    with atomic_dir(out) as tmp:
+    with output_folder(out, DATASET_KIND, option="OUT", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
         write_native(tmp, meta, cameras, params, images(), mask_stream(), progress=False)
         bar.close()
         np.savez(tmp / "smpl_true.npz", **{k: v.astype(np.float32) for k, v in true.items()})

@@ -1,0 +1,397 @@
+"""The bad-input corpus (issue 13): careless or hostile invocations of every command, run in-process.
+
+Each case builds what it needs in its own folder, runs ``rmavatar.commands.main``, and must: exit with an
+error (2 for argparse and UserError), print a message that names the offending argument or file, print
+no traceback, and leave every file that existed before byte for byte as it was (the shared tiny dataset
+and run included). ``test_case_counts`` prints the number of cases per command.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+import os
+import pickle
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rmavatar.commands import main
+
+SIZE = 32
+
+
+# ----------------------------------------------------------------------------------------------- shared world
+def _camera(fx: float = 45.0, cx: float = SIZE / 2) -> dict:
+    viewmat = np.diag([1.0, -1.0, -1.0, 1.0]).astype(np.float32)  # looks along world -z
+    viewmat[:3, 3] = -viewmat[:3, :3] @ np.array([0.0, -0.4, 3.2], np.float32)
+    return {"K": np.array([[fx, 0, cx], [0, fx, SIZE / 2], [0, 0, 1]], np.float32), "viewmat": viewmat}
+
+
+def _dataset(path: Path, *, fx: float = 45.0, cx: float = SIZE / 2, mask_value: float = 1.0) -> Path:
+    from rmavatar.data import write_native
+
+    n = 4
+    params = {"betas": np.zeros((n, 10), np.float32), "global_orient": np.zeros((n, 3), np.float32),
+              "body_pose": np.zeros((n, 69), np.float32), "transl": np.zeros((n, 3), np.float32)}
+    images = [np.full((SIZE, SIZE, 3), 0.5, np.float32)] * n
+    masks = [np.full((SIZE, SIZE), mask_value, np.float32)] * n
+    write_native(path, {"name": "tiny", "splits": {"train": [0, 1], "test": [2, 3]}, "body": "anny"},
+                 _camera(), params, images, masks, progress=False)
+    if fx != 45.0 or cx != SIZE / 2:  # a broken camera, written past write_native's own checks
+        cam = _camera(fx, cx)
+        np.savez(path / "cameras.npz", K=cam["K"], viewmat=cam["viewmat"])
+    return path
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A tiny dataset, a run trained on it for two steps, a motion file and a config, shared read-only."""
+    from rmavatar.train import TrainConfig, train
+
+    root = tmp_path_factory.mktemp("world")
+    data = _dataset(root / "data")
+    cfg = TrainConfig()
+    cfg.data.path = str(data)
+    cfg.optim.iters = 2
+    cfg.density.enabled = False
+    cfg.log.tensorboard = False
+    cfg.model.sh_degree = 0
+    cfg.device = "cpu"
+    train(cfg, root / "run", progress=False)
+    poses = np.zeros((3, 72), np.float32)
+    np.savez(root / "motion.npz", poses=poses, trans=np.zeros((3, 3), np.float32), fps=np.float32(30))
+    return {"root": root, "data": str(data), "run": str(root / "run"), "motion": str(root / "motion.npz")}
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+def user_file(path: Path, text: str = "the user's own file") -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def png(path: Path, size: int = SIZE, value: int = 128) -> Path:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((size, size, 3), value, np.uint8)).save(path)
+    return path
+
+
+def yaml_file(path: Path, text: str) -> Path:
+    return user_file(path, text)
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+# ----------------------------------------------------------------------------------------------- the cases
+# (id, build(t: tmp folder, w: world) -> argv, exit code, text the message must hold). Ids start with the
+# command; "loss:" cases destroyed user data before, "tb:" printed a traceback, "silent:" went on wrongly.
+def _c(case_id, build, needle, code=2):
+    return pytest.param(build, code, needle, id=case_id)
+
+
+def _demo_like(t: Path, w) -> Path:
+    """A copy of a demo folder: metrics.json beside the user's run checkpoints."""
+    user_file(t / "demo_copy" / "metrics.json", "{}")
+    user_file(t / "demo_copy" / "run" / "checkpoints" / "last.pt", "weights")
+    return t / "demo_copy"
+
+
+def _frames_dir(t: Path) -> Path:
+    png(t / "frames" / "frame_00000.png")
+    png(t / "frames" / "frame_00001.png")
+    return t / "frames"
+
+
+def _foreign_dataset(t: Path) -> Path:
+    d = _dataset(t / "mine")
+    (d / ".rmavatar").unlink()  # made by something else: a converted video, say
+    user_file(d / "notes.txt")
+    return d
+
+
+def _zero_byte_png(t: Path) -> str:
+    import shutil
+
+    d = t / "d"
+    shutil.copytree(_dataset(t / "src"), d)
+    (d / "images" / "00001.png").write_bytes(b"")
+    return str(d)
+
+
+def _run_with_pickle(t: Path, w) -> str:
+    """A run folder whose checkpoint is a pickle that runs a command when loaded."""
+    import shutil
+
+    run = t / "evil_run"
+    shutil.copytree(w["run"], run)
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {t / 'pwned'}",))
+
+    with open(run / "checkpoints" / "last.pt", "wb") as fh:
+        pickle.dump({"format": Evil()}, fh)
+    return str(run)
+
+
+def _object_motion(t: Path) -> str:
+    path = t / "obj.npz"
+    np.savez(path, poses=np.array([{"a": 1}], dtype=object))
+    return str(path)
+
+
+def _string_motion(t: Path) -> str:
+    path = t / "str.npz"
+    np.savez(path, poses=np.array([["x"] * 72] * 2))
+    return str(path)
+
+
+CASES = [
+    # --- data loss (issue: 6)
+    _c("eval-loss:images-dir-holds-metrics-and-checkpoints",
+       lambda t, w: ["eval", w["run"], "--json", str(t / "e.json"), "--images", str(_demo_like(t, w))], "demo_copy"),
+    _c("eval-loss:images-current-folder",
+       lambda t, w: (os.chdir(user_file(t / "cwd" / "mine.txt").parent),
+                     ["eval", w["run"], "--json", str(t / "e.json"), "--images", "."])[1], "current folder"),
+    _c("eval-loss:images-user-folder-with-overwrite-clash",
+       lambda t, w: ["eval", w["run"], "--json", str(t / "e.json"), "--images", str(png(t / "im" / "a.png").parent),
+                     "--overwrite"], "a.png"),
+    _c("animate-loss:frames-folder-of-user-frames",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(_frames_dir(t)) + "/"], "frames"),
+    _c("animate-loss:frames-folder-overwrite-would-replace-user-frames",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(_frames_dir(t)) + "/",
+                     "--overwrite"], "frame_0000"),
+    _c("synth-loss:dataset-synth-did-not-make",
+       lambda t, w: ["synth", str(_foreign_dataset(t)), "--size", "16", "--train", "1", "--test", "1"], "mine"),
+    _c("synth-loss:dataset-of-write_native",
+       lambda t, w: ["synth", str(_dataset(t / "native")), "--size", "16"], "native"),
+    _c("synth-loss:overwrite-would-replace-their-dataset-files",
+       lambda t, w: ["synth", str(_foreign_dataset(t)), "--overwrite", "--size", "16"], "cameras.npz"),
+    _c("render-loss:turntable-frames-folder-of-user-frames",
+       lambda t, w: ["render", w["run"], "--turntable", "--out", str(_frames_dir(t)) + "/"], "frames"),
+    _c("animate-loss:mp4-not-written-by-rmavatar",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(user_file(t / "mine.mp4"))], "mine.mp4"),
+    _c("export-loss:ply-not-written-by-rmavatar",
+       lambda t, w: ["export", w["run"], "--ply", str(user_file(t / "mine.ply"))], "mine.ply"),
+    _c("render-loss:png-not-written-by-rmavatar",
+       lambda t, w: ["render", "--random", "10", "--out", str(png(t / "mine.png"))], "mine.png"),
+    _c("body-loss:png-not-written-by-rmavatar",
+       lambda t, w: ["body", "show", "--out", str(png(t / "mine.png"))], "mine.png"),
+    _c("inspect-loss:json-not-written-by-rmavatar",
+       lambda t, w: ["inspect", w["data"], "--json", str(user_file(t / "mine.json"))], "mine.json"),
+    _c("eval-loss:json-not-written-by-rmavatar",
+       lambda t, w: ["eval", w["run"], "--json", str(user_file(t / "mine.json")), "--no-images"], "mine.json"),
+    _c("bench-loss:json-not-written-by-rmavatar",
+       lambda t, w: ["bench", "raster", "--json", str(user_file(t / "mine.json"))], "mine.json"),
+    _c("train-loss:out-is-a-user-folder",
+       lambda t, w: ["train", w["data"], "--out", str(user_file(t / "u" / "thesis.tex").parent)], "u"),
+    _c("demo-loss:out-is-a-user-folder",
+       lambda t, w: ["demo", "--out", str(user_file(t / "u" / "thesis.tex").parent)], "thesis.tex"),
+    _c("demo-loss:overwrite-would-replace-users-metrics.json",
+       lambda t, w: ["demo", "--out", str(user_file(t / "u" / "metrics.json").parent), "--overwrite"], "metrics.json"),
+    _c("eval-loss:json-is-dev-null",
+       lambda t, w: ["eval", w["run"], "--json", "/dev/null", "--no-images", "--overwrite"], "/dev/null"),
+    # --- tracebacks before (issue: 17)
+    _c("train-tb:camera-zero-focal",
+       lambda t, w: ["train", str(_dataset(t / "k0", fx=0.0)), "--out", str(t / "run"), "--iters", "1"], "focal"),
+    _c("eval-tb:camera-zero-focal",
+       lambda t, w: ["eval", w["run"], "--data", str(_dataset(t / "k0", fx=0.0)), "--json", str(t / "e.json")], "focal"),
+    _c("train-tb:out-below-a-regular-file",
+       lambda t, w: ["train", w["data"], "--out", str(user_file(t / "f.txt")) + "/run"], "f.txt"),
+    _c("train-tb:out-under-proc",
+       lambda t, w: ["train", w["data"], "--out", "/proc/rmavatar-run"], "/proc"),
+    _c("eval-tb:json-under-proc",
+       lambda t, w: ["eval", w["run"], "--json", "/proc/x.json"], "/proc"),
+    _c("eval-tb:images-below-a-file",
+       lambda t, w: ["eval", w["run"], "--json", str(t / "e.json"), "--images", str(user_file(t / "f.txt")) + "/im"],
+       "f.txt"),
+    _c("inspect-tb:json-under-proc", lambda t, w: ["inspect", w["data"], "--json", "/proc/x.json"], "/proc"),
+    _c("body-tb:out-under-proc", lambda t, w: ["body", "show", "--out", "/proc/x.png"], "/proc"),
+    _c("synth-tb:out-under-proc", lambda t, w: ["synth", "/proc/rmavatar-synth", "--size", "16"], "/proc"),
+    _c("animate-tb:fov-zero",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(t / "a.mp4"), "--fov", "0"], "--fov"),
+    _c("animate-tb:motion-poses-are-strings",
+       lambda t, w: ["animate", w["run"], "--motion", _string_motion(t), "--out", str(t / "a.mp4")], "str.npz"),
+    _c("render-tb:random-zero", lambda t, w: ["render", "--random", "0", "--out", str(t / "r.png")], "--random"),
+    _c("body-tb:size-zero", lambda t, w: ["body", "show", "--size", "0", "--out", str(t / "b.png")], "--size"),
+    _c("export-tb:ply-under-proc", lambda t, w: ["export", w["run"], "--ply", "/proc/x.ply"], "/proc"),
+    _c("animate-tb:out-under-proc",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", "/proc/x.mp4"], "/proc"),
+    _c("render-tb:turntable-fov-zero",
+       lambda t, w: ["render", w["run"], "--turntable", "--out", str(t / "t.mp4"), "--fov", "0"], "--fov"),
+    _c("bench-tb:json-under-proc", lambda t, w: ["bench", "raster", "--json", "/proc/x.json"], "/proc"),
+    _c("capture-tb:out-under-proc",
+       lambda t, w: ["capture", str(png(t / "clip" / "0001.png").parent), "--out", "/proc/rmavatar-cap"], "/proc"),
+    _c("batch-tb:out-below-a-file",
+       lambda t, w: ["batch", str(yaml_file(t / "jobs.yaml", f"jobs:\n  - {{name: a, data: {w['data']}}}\n")),
+                     "--out", str(user_file(t / "f.txt")) + "/b"], "f.txt"),
+    # --- went on silently before (issue: 18)
+    _c("inspect-silent:check-camera-zero-focal",
+       lambda t, w: ["inspect", str(_dataset(t / "k0", fx=0.0)), "--check"], "focal"),
+    _c("inspect-silent:principal-point-outside",
+       lambda t, w: ["inspect", str(_dataset(t / "cx", cx=500.0)), "--check"], "principal point"),
+    _c("inspect-silent:check-all-masks-empty",
+       lambda t, w: ["inspect", str(_dataset(t / "m0", mask_value=0.0)), "--check"], "empty"),
+    _c("train-silent:all-masks-empty",
+       lambda t, w: ["train", str(_dataset(t / "m0", mask_value=0.0)), "--out", str(t / "run")], "empty"),
+    _c("train-silent:zero-byte-png-found-up-front",
+       lambda t, w: ["train", _zero_byte_png(t), "--out", str(t / "run")], "00001.png"),
+    _c("inspect-silent:check-zero-byte-png", lambda t, w: ["inspect", _zero_byte_png(t), "--check"], "00001.png"),
+    _c("train-silent:threads-negative",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--threads", "-2"], "threads"),
+    _c("train-silent:config-max-gaussians-negative",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--config",
+                     str(yaml_file(t / "c.yaml", "density:\n  max_gaussians: -5\n"))], "max_gaussians"),
+    _c("train-silent:config-nan-loss-weight",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--config",
+                     str(yaml_file(t / "c.yaml", "loss:\n  rgb: .nan\n"))], "loss.rgb"),
+    _c("train-silent:config-string-for-number",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--config",
+                     str(yaml_file(t / "c.yaml", "optim:\n  lr_scaling: fast\n"))], "optim.lr_scaling"),
+    _c("render-silent:background-above-one",
+       lambda t, w: ["render", "--random", "10", "--out", str(t / "r.png"), "--background", "2", "0", "0"],
+       "--background"),
+    _c("render-silent:background-nan",
+       lambda t, w: ["render", "--random", "10", "--out", str(t / "r.png"), "--background", "nan", "0", "0"],
+       "--background"),
+    _c("train-silent:resume-iters-below-done",
+       lambda t, w: ["train", w["data"], "--out", w["run"], "--resume", "--iters", "1"], "--iters 1"),
+    _c("view-silent:host-cannot-be-bound", lambda t, w: ["view", w["run"], "--host", "192.0.2.1"], "192.0.2.1"),
+    _c("inspect-silent:frames-zero", lambda t, w: ["inspect", w["data"], "--frames", "0"], "--frames"),
+    _c("eval-silent:frames-zero",
+       lambda t, w: ["eval", w["run"], "--json", str(t / "e.json"), "--frames", "0"], "--frames"),
+    _c("train-silent:seed-negative",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--seed", "-1"], "seed"),
+    _c("train-silent:checkpoint-every-zero",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--checkpoint-every", "0"], "checkpoint_every"),
+    _c("demo-silent:threads-zero", lambda t, w: ["demo", "--out", str(t / "d"), "--threads", "0"], "--threads"),
+    _c("bench-silent:threads-negative", lambda t, w: ["bench", "raster", "--threads", "-1"], "--threads"),
+    _c("animate-silent:size-zero",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(t / "a.mp4"), "--size", "0"], "--size"),
+    _c("capture-silent:iters-zero",
+       lambda t, w: ["capture", str(png(t / "clip" / "0001.png").parent), "--out", str(t / "c"), "--iters", "0"],
+       "--iters"),
+    # --- hostile files: refused, and the message recommends nothing unsafe
+    _c("eval-hostile:checkpoint-pickle-runs-code",
+       lambda t, w: ["eval", _run_with_pickle(t, w), "--json", str(t / "e.json")], "pickled Python objects"),
+    _c("animate-hostile:motion-object-array",
+       lambda t, w: ["animate", w["run"], "--motion", _object_motion(t), "--out", str(t / "a.mp4")],
+       "pickled Python objects"),
+    # --- argparse
+    _c("render-argparse:no-source", lambda t, w: ["render", "--out", str(t / "r.png")], "--random"),
+]
+
+
+def _snapshot(*roots: Path) -> dict[str, str]:
+    out = {}
+    for root in roots:
+        for dirpath, _, files in os.walk(root):
+            for name in files:
+                p = Path(dirpath, name)
+                if not p.is_symlink():
+                    out[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+@pytest.mark.parametrize("build, code, needle", CASES)
+def test_bad_input(build, code, needle, world, tmp_path, capsys, monkeypatch):
+    # A registry of written files of its own (the cache folder itself keeps the built body models).
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path.parent / "outputs-registry.json")
+    monkeypatch.chdir(tmp_path)
+    argv = build(tmp_path, world)
+    before = _snapshot(tmp_path, world["root"])
+    try:
+        got = main(argv)
+    except SystemExit as exc:  # argparse
+        got = exc.code
+    out, err = capsys.readouterr()
+    text = out + err
+    assert got == code, text
+    assert needle in text, text
+    assert "Traceback" not in text
+    assert "allow_pickle=True" not in text and "weights_only=False" not in text
+    after = _snapshot(tmp_path, world["root"])
+    assert {k: v for k, v in after.items() if k in before} == before, "a file that existed was changed or removed"
+    assert not (tmp_path / "pwned").exists()
+
+
+def test_case_counts(capsys):
+    """The corpus size per command (printed; run with -s to see it)."""
+    counts = collections.Counter(p.id.split("-")[0] for p in CASES)
+    with capsys.disabled():
+        print("\nbad-input cases per command:", json.dumps(dict(sorted(counts.items()))), f"total {sum(counts.values())}")
+    assert set(counts) >= {"train", "eval", "animate", "render", "export", "synth", "inspect", "body", "demo",
+                           "bench", "capture", "batch", "view"}
+
+
+def test_stale_temporaries_of_killed_runs_are_swept(tmp_path):
+    """A SIGKILLed writer leaves its temporary (e.g. animate's MP4); the next write beside it removes it,
+    but never a live process's temporary or a user's file."""
+    from rmavatar.utils import atomic_path
+    from rmavatar.utils.files import tmp_prefix
+
+    dead = tmp_prefix("anim").replace(f".{os.getpid()}.", f".{dead_pid()}.")
+    stale = user_file(tmp_path / f"{dead}abc.tmp.mp4", "half a video")
+    stale_dir = tmp_path / f"{dead}xyz.tmp"
+    stale_dir.mkdir()
+    live = user_file(tmp_path / f"{tmp_prefix('other')}def.tmp.mp4", "being written")
+    mine = user_file(tmp_path / ".anim.abcd1234.tmp.mp4", "a user's hidden file")
+    with atomic_path(tmp_path / "anim.mp4") as tmp:
+        tmp.write_text("video")
+    assert not stale.exists() and not stale_dir.exists()
+    assert live.exists() and mine.exists() and (tmp_path / "anim.mp4").read_text() == "video"
+
+
+def test_overwrite_keeps_files_rmavatar_did_not_write(tmp_path, monkeypatch):
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path / "registry.json")
+    folder = tmp_path / "out"
+    with outputs.output_folder(folder, "frames") as tmp:
+        (tmp / "frame_00000.png").write_text("1")
+        (tmp / "frame_00001.png").write_text("1")
+    user_file(folder / "notes.txt", "mine")
+    with outputs.output_folder(folder, "frames", overwrite=True, writes=("frame_*.png",)) as tmp:
+        (tmp / "frame_00000.png").write_text("2")
+    assert sorted(p.name for p in folder.iterdir()) == [".rmavatar", "frame_00000.png", "notes.txt"]
+    assert (folder / "frame_00000.png").read_text() == "2" and (folder / "notes.txt").read_text() == "mine"
+    with outputs.output_folder(folder / "sub", "frames") as tmp:  # and the second write of own files replaces
+        (tmp / "a").write_text("x")
+    outputs.write_json(tmp_path / "r.json", {"a": 1})
+    outputs.write_json(tmp_path / "r.json", {"a": 2})  # its own file: replaced without --overwrite
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 2}
+
+
+def test_masks_saved_0_1_are_rescaled_with_a_warning(tmp_path):
+    from PIL import Image
+
+    from rmavatar.data import load_dataset
+    from rmavatar.data.checks import check_dataset
+
+    d = _dataset(tmp_path / "d")
+    for p in (d / "masks").iterdir():
+        Image.fromarray(np.ones((SIZE, SIZE), np.uint8)).save(p)
+    ds = load_dataset(d)
+    with pytest.warns(UserWarning, match="only 0 and 1"):
+        check_dataset(ds)
+    assert ds.frame("train", 0).mask.min() == 1.0
+
+
+def test_no_message_recommends_unsafe_loading():
+    src = Path(__file__).parents[1] / "src"
+    for path in src.rglob("*.py"):
+        text = path.read_text()
+        for bad in ("allow_pickle=True", "weights_only=False"):
+            assert bad not in text, f"{path} mentions {bad}"
