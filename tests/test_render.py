@@ -482,3 +482,30 @@ def test_projection_gradients_match_gsplat_torch_reference():
         for k in grads[name]:
             torch.testing.assert_close(grads[name][k], grads["gsplat"][k], atol=1e-9, rtol=1e-9,
                                        msg=lambda m: f"{name} d/d{k}: {m}")
+
+
+def test_unchecked_inputs_cull_non_finite_gaussians():
+    """check=False (training: no host sync) draws non-finite Gaussians as if absent, on the CPU kernels
+    and in the device-side cull used before gsplat."""
+    from rmavatar.render.rasterize import _cull_non_finite
+
+    params, viewmat, K, w, h = _scene(30, 22)
+    keep = torch.ones(30, dtype=torch.bool)
+    keep[[3, 7, 11, 15]] = False
+    args = [params[k] for k in ("means", "quats", "scales", "opacities", "colors")]
+    clean_img, clean_alpha, _ = rasterize(*[a[keep] for a in args], viewmat, K, w, h,
+                                          background=params["background"])
+    bad = [a.clone() for a in args]
+    bad[0][3, 0] = float("nan")  # x only: a rotation with zeros could keep z finite
+    bad[1][7] = 0.0
+    bad[2][11, 1] = float("inf")
+    bad[3][15] = float("nan")
+    img, alpha, info = rasterize(*bad, viewmat, K, w, h, background=params["background"], check=False)
+    torch.testing.assert_close(img, clean_img, atol=1e-12, rtol=0)
+    torch.testing.assert_close(alpha, clean_alpha, atol=1e-12, rtol=0)
+    assert not info["visible"][~keep].any()
+    culled = _cull_non_finite(*bad)
+    assert all(torch.isfinite(t).all() for t in culled)
+    assert (culled[3][~keep] == 0).all() and torch.equal(culled[3][keep], bad[3][keep])
+    with pytest.raises(RasterInputError, match="NaN"):
+        rasterize(*bad, viewmat, K, w, h)

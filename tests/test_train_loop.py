@@ -199,8 +199,9 @@ def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_p
         return loss * float("nan"), parts
 
     monkeypatch.setattr(trainer, "total_loss", always_nan)
-    cfg = _cfg(data, 50, max_bad_steps=3)
-    with pytest.raises(UserError, match="3 consecutive steps"):
+    # The guard stays on the device and is read at each progress report (every 4 iterations here).
+    cfg = _cfg(data, 50, max_bad_steps=3, progress_every=4)
+    with pytest.raises(UserError, match="iteration 4: 4 consecutive steps .*max_bad_steps is 3"):
         train(cfg, tmp_path / "run", progress=False)
     saved = read_checkpoint(checkpoint_path(tmp_path / "run"))
     fresh = Trainer(_cfg(data, 50), tmp_path / "probe", progress=False)

@@ -158,10 +158,11 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
         trainer.avatar.set_progress(cfg.optim.iters, cfg.optim.iters)  # all SH bands on: the costliest step
 
+        skipped = torch.zeros((), dtype=torch.long, device=trainer.device)
+
         def one_step():
             out = trainer.step()
-            if out is None:
-                raise RuntimeError("a benchmark step was skipped (non-finite loss)")
+            skipped.add_((~out["ok"]).long())  # read once at the end: no sync per step
             trainer.iteration += 1
 
         for _ in range(warmup):
@@ -172,6 +173,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
                 one_step()
         times = clock.wall
         counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
+        if int(skipped):
+            raise RuntimeError(f"{int(skipped)} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.

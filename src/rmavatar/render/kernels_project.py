@@ -79,7 +79,8 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
         y = Rv[1, 0] * m[0] + Rv[1, 1] * m[1] + Rv[1, 2] * m[2] + viewmat[1, 3]
         z = Rv[2, 0] * m[0] + Rv[2, 1] * m[1] + Rv[2, 2] * m[2] + viewmat[2, 3]
         depths[g] = z
-        if not (z >= NEAR_PLANE and z <= FAR_PLANE):
+        # NaN fails every comparison: such rows are culled here or by the determinant test below.
+        if not (z >= NEAR_PLANE and z <= FAR_PLANE and math.isfinite(x) and math.isfinite(y)):
             continue
         R = np.empty((3, 3))
         M = np.empty((3, 3))
