@@ -23,6 +23,8 @@ from rmavatar.avatar import (
 )
 from rmavatar.utils import UserError
 
+from devices import DEVICES
+
 
 def sphere():
     m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
@@ -131,16 +133,19 @@ def test_init_values_and_centroid():
     assert torch.allclose(quat_to_rotmat(g.quats), R, atol=1e-5)
 
 
-def test_gaussians_move_rigidly_with_a_rigid_mesh():
+@pytest.mark.parametrize("device", DEVICES)
+def test_gaussians_move_rigidly_with_a_rigid_mesh(device):
     v, f = sphere()
     gen = torch.Generator().manual_seed(2)
     av = Avatar(f, None, v, AvatarConfig(rectifier=False)).double()
     randomise(av, gen)
-    v = v.double()
+    av.to(device)
+    v = v.double().to(device)
     g0 = av(v)
+    assert g0.means.device.type == device
     for _ in range(3):
-        Q = random_rotation(gen)
-        t = torch.randn(3, generator=gen, dtype=torch.float64)
+        Q = random_rotation(gen).to(device)
+        t = torch.randn(3, generator=gen, dtype=torch.float64).to(device)
         c = float(torch.rand(1, generator=gen)) * 2 + 0.2
         g1 = av(c * v @ Q.T + t)
         assert torch.allclose(g1.means, c * g0.means @ Q.T + t, atol=1e-10)
@@ -375,13 +380,15 @@ def test_rectified_attributes_follow_the_paper():
     assert torch.allclose(quat_to_rotmat(g.quats), quat_to_rotmat(r) @ quat_to_rotmat(dq), atol=1e-12)
 
 
-def test_gradients_reach_every_parameter():
+@pytest.mark.parametrize("device", DEVICES)
+def test_gradients_reach_every_parameter(device):
     v, f = sphere()
     gen = torch.Generator().manual_seed(7)
     av = Avatar(f, None, v)
     randomise(av, gen)
+    av.to(device)
     av.active_sh_degree.fill_(3)
-    g = av(v, torch.randn(69, generator=gen))
+    g = av(v.to(device), torch.randn(69, generator=gen).to(device))
     loss = (g.means.square().sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.square().sum())
     loss = loss + sum(o.square().sum() for o in g.offsets)
     loss.backward()

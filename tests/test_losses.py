@@ -11,6 +11,8 @@ from rmavatar.render import GaussianSet
 from rmavatar.train.config import LossConfig
 from rmavatar.train.losses import offset_loss, position_loss, scaling_loss, total_loss
 
+from devices import DEVICES
+
 
 def test_position_loss_by_hand():
     mu = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0, 3, 4], [0.6, 0.0, -0.8]])
@@ -79,31 +81,34 @@ def test_total_loss_weights_and_switches():
         total_loss(render[:8], target, g, cfg)
 
 
-def test_total_loss_default_ssim_matches_metric():
+@pytest.mark.parametrize("device", DEVICES)
+def test_total_loss_default_ssim_matches_metric(device):
     from rmavatar.evaluate import ssim
 
     gen = torch.Generator().manual_seed(0)
-    render = torch.rand(24, 24, 3, generator=gen)
-    target = torch.rand(24, 24, 3, generator=gen)
+    render = torch.rand(24, 24, 3, generator=gen).to(device)
+    target = torch.rand(24, 24, 3, generator=gen).to(device)
     g = _fake_set()
     w = LossConfig(rgb=0, lpips=0, pos=0, scaling=0, offset=0, ssim=1.0)
     loss, terms = total_loss(render, target, g, w)
     assert math.isclose(float(loss.detach()), 1 - float(ssim(render, target)), rel_tol=1e-6)
 
 
-def test_loss_gradients_reach_every_avatar_parameter():
+@pytest.mark.parametrize("device", DEVICES)
+def test_loss_gradients_reach_every_avatar_parameter(device):
     m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
     v = torch.tensor(m.vertices, dtype=torch.float32)
     f = torch.tensor(m.faces)
-    av = Avatar(f, None, v, AvatarConfig())
+    av = Avatar(f, None, v, AvatarConfig()).to(device)
+    v = v.to(device)
     av.active_sh_degree.fill_(3)
     with torch.no_grad():
         av.means.mul_(0).add_(1.5)  # beyond eps_pos
         av.log_scales.fill_(0.3)  # beyond eps_scaling
-    g = av(v, torch.randn(69))
+    g = av(v, torch.randn(69).to(device))
     # A stand-in "render" that depends on every attribute, as the rasterizer does.
     render = (g.means.mean() + g.quats.mean() + g.scales.mean() + g.opacities.mean() + g.sh.mean()).expand(16, 16, 3)
-    loss, _ = total_loss(render, torch.zeros(16, 16, 3), g, LossConfig(ssim=0, lpips=0))
+    loss, _ = total_loss(render, torch.zeros(16, 16, 3, device=device), g, LossConfig(ssim=0, lpips=0))
     loss.backward()
     for name, p in av.named_parameters():
         assert p.grad is not None and p.grad.abs().max() > 0, name

@@ -11,7 +11,9 @@ import torch
 
 from rmavatar.render import RasterInputError, rasterize
 from rmavatar.render.project import sh_basis
-from rmavatar.render.reference import reference_rasterize
+from rmavatar.render.reference import reference_project, reference_rasterize
+
+from devices import DEVICES
 
 F64 = torch.float64
 TOL = 1e-5
@@ -373,3 +375,157 @@ def test_numba_projection_matches_torch_statement():
     torch.testing.assert_close(pn.depths, pt.depths, atol=1e-12, rtol=0)
     for k in gn:
         torch.testing.assert_close(gn[k], gt[k], atol=1e-9, rtol=1e-9, msg=lambda m: f"d/d{k}: {m}")
+
+
+def _guard_band_scene():
+    """Large Gaussians whose centres lie beyond gsplat's 1.3x-frustum guard band (in x, in y, in both,
+    on both sides) but whose footprints still reach the image, plus ordinary ones inside."""
+    params, viewmat, K, w, h = _scene(24, 21, width=40, height=32)
+    pc = torch.tensor([
+        [2.6, 0.1, 3.0], [-2.7, -0.2, 3.2], [0.2, 2.4, 2.8], [-0.1, -2.2, 3.1], [2.5, 2.3, 3.0],
+        [-2.4, 2.6, 2.9], [1.9, -0.3, 2.5], [-0.3, 1.8, 2.6],
+    ], dtype=F64)
+    Rv, tv = viewmat[:3, :3], viewmat[:3, 3]
+    params["means"][:8] = (pc - tv) @ Rv  # camera -> world
+    params["scales"][:8] = torch.tensor([0.9, 0.7, 1.1], dtype=F64)
+    params["opacities"][:8] = 0.6
+    return params, viewmat, K, w, h
+
+
+def _beyond_band(means, viewmat, K, w, h):
+    pc = means @ viewmat[:3, :3].T + viewmat[:3, 3]
+    u, v = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    out_x = (u > (w - cx) / fx + 0.15 * w / fx) | (u < -(cx / fx + 0.15 * w / fx))
+    out_y = (v > (h - cy) / fy + 0.15 * h / fy) | (v < -(cy / fy + 0.15 * h / fy))
+    return out_x, out_y
+
+
+def test_matches_dense_reference_beyond_the_guard_band():
+    """Gaussians clamped in x, in y and in both still get the reference's gradients (gsplat's rule)."""
+    params, viewmat, K, w, h = _guard_band_scene()
+    out_x, out_y = _beyond_band(params["means"], viewmat, K, w, h)
+    assert out_x[:8].sum() >= 3 and out_y[:8].sum() >= 3 and (out_x & out_y).any()
+    _, _, grads = _compare(params, viewmat, K, w, h)
+    assert grads["means"][:8].abs().amax(-1).min() > 1e-4  # the clamped ones are on screen and matter
+
+
+@pytest.mark.parametrize("impl", ["numba", "torch", "reference"])
+def test_projection_gradients_match_finite_differences(impl):
+    """d(means2d, conics, depths)/d(means, quats, scales) of each projection against central finite
+    differences in float64, with centres inside and beyond the guard band (where the clamped
+    component of J depends on z only: the rule gsplat 1.5.3 differentiates)."""
+    from rmavatar.render.cpu import project
+    from rmavatar.render.project import project_gaussians
+
+    params, viewmat, K, w, h = _guard_band_scene()
+    keep = slice(0, 12)
+    base = {k: params[k][keep].clone() for k in ("means", "quats", "scales")}
+    opac = params["opacities"][keep]
+    out_x, out_y = _beyond_band(base["means"], viewmat, K, w, h)
+    # Away from the band's bounds, so a finite-difference step never crosses them.
+    assert out_x.any() and out_y.any() and (~out_x & ~out_y).any()
+    g = torch.Generator().manual_seed(5)
+    wts = [torch.randn(12, k, generator=g, dtype=F64) for k in (2, 3, 1)]
+
+    def loss_of(p):
+        if impl == "reference":
+            means2d, inv, depths, _ = reference_project(p["means"], p["quats"], p["scales"], opac, viewmat, K, w, h)
+            conics = torch.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+        else:
+            fn = project if impl == "numba" else project_gaussians
+            proj = fn(p["means"], p["quats"], p["scales"], opac, viewmat, K, w, h)
+            means2d, conics, depths = proj.means2d, proj.conics, proj.depths
+        return (means2d * wts[0]).sum() + (conics * wts[1]).sum() + (depths * wts[2][:, 0]).sum()
+
+    p = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+    loss_of(p).backward()
+    eps = 1e-6
+    for k in base:
+        num = torch.zeros_like(base[k])
+        for idx in np.ndindex(*base[k].shape):
+            hi = {kk: vv.clone() for kk, vv in base.items()}
+            lo = {kk: vv.clone() for kk, vv in base.items()}
+            hi[k][idx] += eps
+            lo[k][idx] -= eps
+            num[idx] = (loss_of(hi) - loss_of(lo)) / (2 * eps)
+        torch.testing.assert_close(p[k].grad, num, atol=1e-6, rtol=1e-6, msg=lambda m: f"{impl} d/d{k}: {m}")
+
+
+def test_projection_gradients_match_gsplat_torch_reference():
+    """Where gsplat is installed (any machine: its pure-torch reference needs no CUDA), the gradients
+    of our projections agree with autograd through gsplat 1.5.3's ``_fully_fused_projection``,
+    including centres beyond the guard band (its clamp is differentiated)."""
+    ti = pytest.importorskip("gsplat.cuda._torch_impl")
+    from rmavatar.render.cpu import project
+    from rmavatar.render.project import project_gaussians, quat_to_rotmat
+
+    params, viewmat, K, w, h = _guard_band_scene()
+    out_x, out_y = _beyond_band(params["means"], viewmat, K, w, h)
+    assert out_x.any() and out_y.any()
+    n = len(params["opacities"])
+    g = torch.Generator().manual_seed(6)
+    wts = [torch.randn(n, k, generator=g, dtype=F64) for k in (2, 3, 1)]
+    grads = {}
+    for name in ("gsplat", "numba", "torch"):
+        p = {k: params[k].clone().requires_grad_(True) for k in ("means", "quats", "scales")}
+        if name == "gsplat":  # its quaternion->matrix is no_grad, so the covariance is built here
+            M = quat_to_rotmat(p["quats"]) * p["scales"][:, None, :]
+            _, means2d, depths, conics, _ = ti._fully_fused_projection(
+                p["means"], M @ M.transpose(-1, -2), viewmat[None], K[None], w, h, eps2d=0.3)
+            means2d, depths, conics = means2d[0], depths[0], conics[0]
+        else:
+            fn = project if name == "numba" else project_gaussians
+            proj = fn(p["means"], p["quats"], p["scales"], params["opacities"], viewmat, K, w, h)
+            means2d, conics, depths = proj.means2d, proj.conics, proj.depths
+        ((means2d * wts[0]).sum() + (conics * wts[1]).sum() + (depths * wts[2][:, 0]).sum()).backward()
+        grads[name] = {k: v.grad for k, v in p.items()}
+    for name in ("numba", "torch"):
+        for k in grads[name]:
+            torch.testing.assert_close(grads[name][k], grads["gsplat"][k], atol=1e-9, rtol=1e-9,
+                                       msg=lambda m: f"{name} d/d{k}: {m}")
+
+
+def test_unchecked_inputs_cull_non_finite_gaussians():
+    """check=False (training: no host sync) draws non-finite Gaussians as if absent, on the CPU kernels
+    and in the device-side cull used before gsplat."""
+    from rmavatar.render.rasterize import _cull_non_finite
+
+    params, viewmat, K, w, h = _scene(30, 22)
+    keep = torch.ones(30, dtype=torch.bool)
+    keep[[3, 7, 11, 15]] = False
+    args = [params[k] for k in ("means", "quats", "scales", "opacities", "colors")]
+    clean_img, clean_alpha, _ = rasterize(*[a[keep] for a in args], viewmat, K, w, h,
+                                          background=params["background"])
+    bad = [a.clone() for a in args]
+    bad[0][3, 0] = float("nan")  # x only: a rotation with zeros could keep z finite
+    bad[1][7] = 0.0
+    bad[2][11, 1] = float("inf")
+    bad[3][15] = float("nan")
+    img, alpha, info = rasterize(*bad, viewmat, K, w, h, background=params["background"], check=False)
+    torch.testing.assert_close(img, clean_img, atol=1e-12, rtol=0)
+    torch.testing.assert_close(alpha, clean_alpha, atol=1e-12, rtol=0)
+    assert not info["visible"][~keep].any()
+    culled = _cull_non_finite(*bad)
+    assert all(torch.isfinite(t).all() for t in culled)
+    assert (culled[3][~keep] == 0).all() and torch.equal(culled[3][keep], bad[3][keep])
+    with pytest.raises(RasterInputError, match="NaN"):
+        rasterize(*bad, viewmat, K, w, h)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_rasterize_on_each_device_matches_the_reference(device):
+    """float32 tensors on the device through the default backend (CPU kernels / gsplat on CUDA)
+    against the dense float64 reference: image, alpha and d/dmeans; outputs stay on the device."""
+    if device == "cuda":
+        pytest.importorskip("gsplat")
+    params, viewmat, K, w, h = _scene(60, 23, sh_degree=1, width=48, height=40)
+    g = torch.Generator().manual_seed(2)
+    weights = (torch.randn(h, w, 3, generator=g, dtype=F64), torch.randn(h, w, 1, generator=g, dtype=F64))
+    on = _run(rasterize, {k: v.float().to(device) for k, v in params.items()}, viewmat.float().to(device),
+              K.float().to(device), w, h, 1, tuple(x.float().to(device) for x in weights))
+    ref = _run(reference_rasterize, params, viewmat, K, w, h, 1, weights)
+    assert on[0].device.type == device and on[2]["means"].device.type == device
+    torch.testing.assert_close(on[0].cpu().double(), ref[0], atol=1e-4, rtol=0)
+    torch.testing.assert_close(on[1].cpu().double(), ref[1], atol=1e-4, rtol=0)
+    torch.testing.assert_close(on[2]["means"].cpu().double(), ref[2]["means"], atol=2e-3, rtol=1e-3)

@@ -16,6 +16,8 @@ from rmavatar.train.config import TrainConfig
 from rmavatar.train.trainer import Trainer, train
 from rmavatar.utils import UserError
 
+from devices import DEVICES
+
 SIZE = 64
 
 
@@ -199,8 +201,9 @@ def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_p
         return loss * float("nan"), parts
 
     monkeypatch.setattr(trainer, "total_loss", always_nan)
-    cfg = _cfg(data, 50, max_bad_steps=3)
-    with pytest.raises(UserError, match="3 consecutive steps"):
+    # The guard stays on the device and is read at each progress report (every 4 iterations here).
+    cfg = _cfg(data, 50, max_bad_steps=3, progress_every=4)
+    with pytest.raises(UserError, match="iteration 4: 4 consecutive steps .*max_bad_steps is 3"):
         train(cfg, tmp_path / "run", progress=False)
     saved = read_checkpoint(checkpoint_path(tmp_path / "run"))
     fresh = Trainer(_cfg(data, 50), tmp_path / "probe", progress=False)
@@ -261,3 +264,18 @@ def test_bench_step_measures_every_stage(data):
                                   "rasterizer_backward", "losses", "optimizer"}
     assert res["step_median_s"] > 0 and res["gaussians"] > 20_000
     assert all(v["wall_s"] > 0 for v in res["stages"].values())
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_run_on_each_device_writes_previews_tensorboard_and_a_checkpoint(data, tmp_path, device):
+    """Previews, TensorBoard images and the final checkpoint move tensors to the host only at the
+    numpy/PIL edge (issue 12: a CUDA run crashed there); the saved avatar loads back on the device."""
+    cfg = _cfg(data, 4, preview_every=2, progress_every=2, tensorboard_every=2, tensorboard=True)
+    cfg.device = device
+    result = train(cfg, tmp_path / "run", progress=False)
+    assert result.iteration == 4 and [h["iteration"] for h in result.history] == [2, 4]
+    assert sorted(p.name for p in (tmp_path / "run" / "previews").iterdir()) == ["iter_000002.png",
+                                                                                   "iter_000004.png"]
+    assert list((tmp_path / "run" / "tb").iterdir())
+    trained = load_trained(tmp_path / "run", device=device)
+    assert trained.iteration == 4 and trained.avatar.means.device.type == device

@@ -297,12 +297,25 @@ class Avatar(nn.Module):
         """Put the training-time schedules at ``iteration`` of ``total``: the active SH degree and
         the coarse-to-fine encoding window. Absolute (not incremental), so resuming is exact."""
         every = max(1, round(self.config.sh_every_frac * total))
-        self.active_sh_degree.fill_(min(self.config.sh_degree, iteration // every))
+        degree = min(self.config.sh_degree, iteration // every)
+        if self._sh_degree() != degree:
+            self.active_sh_degree.fill_(degree)
+            self._sh_degree_cache = (self.active_sh_degree, self.active_sh_degree._version, degree)
         if self.config.coarse_to_fine:
             start, end = self.config.c2f_start * total, self.config.c2f_end * total
             self.set_frequency_alpha(window_alpha(iteration, round(start), round(end), self.config.num_freqs))
         else:
             self.set_frequency_alpha(self.config.num_freqs)
+
+    def _sh_degree(self) -> int:
+        """``active_sh_degree`` as a Python int, read from the device only when the buffer changed
+        (set_progress fills it every step with the same value for thousands of steps)."""
+        buf = self.active_sh_degree
+        cached = getattr(self, "_sh_degree_cache", None)
+        if cached is None or cached[0] is not buf or cached[1] != buf._version:
+            cached = (buf, buf._version, int(buf))
+            self._sh_degree_cache = cached
+        return cached[2]
 
     # ------------------------------------------------------------------ posing
     def posed(self, vertices: torch.Tensor):
@@ -336,7 +349,17 @@ class Avatar(nn.Module):
         return mu_star, r_star, s_star, R, slot, w
 
     def _face_slot(self) -> torch.Tensor:
-        """Index of every Gaussian's face in ``binding_faces`` [N]."""
+        """Index of every Gaussian's face in ``binding_faces`` [N]; computed (and checked, a host sync)
+        once per ``face_ids`` tensor: density control replaces it, training steps reuse it."""
+        key = (self.face_ids, self.face_ids._version, self.binding_faces, self.binding_faces._version)
+        cached = getattr(self, "_slot_cache", None)
+        if cached is not None and all(a is b if torch.is_tensor(a) else a == b for a, b in zip(cached[0], key)):
+            return cached[1]
+        slot = self._compute_face_slot()
+        self._slot_cache = (key, slot)
+        return slot
+
+    def _compute_face_slot(self) -> torch.Tensor:
         dev = self.face_ids.device
         lookup = torch.full((self.faces.shape[0],), -1, dtype=torch.long, device=dev)
         lookup[self.binding_faces] = torch.arange(self.binding_faces.shape[0], device=dev)
@@ -371,7 +394,7 @@ class Avatar(nn.Module):
             r = quat_multiply(r, dq)
             s = (s + d_s).clamp_min(self.config.min_scale)
             offsets = (d_mu, d_s, d_r)
-        deg = int(self.active_sh_degree)
+        deg = self._sh_degree()
         k = (deg + 1) ** 2
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, self.sh_rest[:, : k - 1]), dim=1)
         return GaussianSet(

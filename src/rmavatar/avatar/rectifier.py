@@ -150,10 +150,22 @@ class Rectifier(nn.Module):
         self.register_buffer("freq_alpha", torch.tensor(float(num_freqs)))
 
     def set_frequency_alpha(self, alpha: float) -> None:
-        self.freq_alpha.fill_(float(alpha))
+        alpha = float(alpha)
+        if self._alpha() != alpha:
+            self.freq_alpha.fill_(alpha)
+            self._alpha_cache = (self.freq_alpha, self.freq_alpha._version, alpha)
+
+    def _alpha(self) -> float:
+        """``freq_alpha`` as a float, read from the device (a host sync) only when the buffer changed."""
+        buf = self.freq_alpha
+        cached = getattr(self, "_alpha_cache", None)
+        if cached is None or cached[0] is not buf or cached[1] != buf._version:
+            cached = (buf, buf._version, float(buf))
+            self._alpha_cache = cached
+        return cached[2]
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        alpha = float(self.freq_alpha)
+        alpha = self._alpha()
         weights = None
         if alpha < self.num_freqs:
             weights = frequency_window(self.num_freqs, alpha, x.device)

@@ -104,12 +104,35 @@ def _stages(trainer, repeats: int, sync) -> dict:
     return out
 
 
+def count_step_ops(one_step, steps: int) -> dict:
+    """Tensor operations and host syncs per training step (``bench.counting``), averaged over ``steps``
+    further steps (none of them a logging or density-control step: ``Trainer.step`` does not log)."""
+    from rmavatar.bench.counting import OpCounter
+
+    with OpCounter() as counter:
+        for _ in range(steps):
+            one_step()
+    return {"steps": steps, **counter.summary(steps)}
+
+
+def device_info(device) -> dict:
+    """The torch device as text and, on CUDA, the GPU's name."""
+    import torch
+
+    dev = torch.device(device)
+    info = {"device": str(dev)}
+    if dev.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(dev)
+    return info
+
+
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
-            gaussians: int | None, rectifier: bool, prepare=None) -> dict:
+            gaussians: int | None, rectifier: bool, prepare=None, count_steps: int = 20) -> dict:
     """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
 
     ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
-    uses it to swap in a reference implementation).
+    uses it to swap in a reference implementation). ``count_steps`` more steps are run under an
+    operation counter (0: none).
     """
     import torch
 
@@ -135,10 +158,11 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
         trainer.avatar.set_progress(cfg.optim.iters, cfg.optim.iters)  # all SH bands on: the costliest step
 
+        skipped = torch.zeros((), dtype=torch.long, device=trainer.device)
+
         def one_step():
             out = trainer.step()
-            if out is None:
-                raise RuntimeError("a benchmark step was skipped (non-finite loss)")
+            skipped.add_((~out["ok"]).long())  # read once at the end: no sync per step
             trainer.iteration += 1
 
         for _ in range(warmup):
@@ -148,6 +172,9 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
             with clock:
                 one_step()
         times = clock.wall
+        counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
+        if int(skipped):
+            raise RuntimeError(f"{int(skipped)} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.
@@ -162,7 +189,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "size": size,
         "gaussians": n,
-        "device": str(trainer.device),
+        **device_info(trainer.device),
         "threads": threads,
         "rectifier": rectifier,
         "step_median_s": step,
@@ -175,6 +202,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
                   "cpu_s": step_cpu - sum(v["cpu_s"] for v in in_step.values())},
         "body_forward_in_step_s": 0.0,
         "density_control_once_s": density_s,
+        "counts": counts,
         "setup_s": setup_s,
         "target_s": 0.3,
     }
@@ -199,10 +227,11 @@ def run(args: argparse.Namespace) -> int:
         if data is None:
             data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
-                      not args.no_rectifier)
+                      not args.no_rectifier, count_steps=args.count_steps)
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg())}
-    print(f"training step at {res['size']}x{res['size']}, {res['gaussians']} Gaussians, {res['device']}, "
+    gpu = f" ({res['gpu']})" if "gpu" in res else ""
+    print(f"training step at {res['size']}x{res['size']}, {res['gaussians']} Gaussians, {res['device']}{gpu}, "
           f"{res['threads']} threads:")
     print(f"  median {res['step_median_s']:.3f} s wall, {res['step_median_cpu_s']:.3f} s CPU (min {res['step_min_s']:.3f}, "
           f"max {res['step_max_s']:.3f}; target <= {res['target_s']} s)  {res['iterations_per_s']:.2f} it/s")
@@ -212,6 +241,13 @@ def run(args: argparse.Namespace) -> int:
         note = "  (data, guards, density statistics, overhead)" if k == "other" else note
         print(f"  {k:<22} {v['wall_s']:8.4f} {v['cpu_s']:8.4f}{note}")
     print(f"  density control pass   {res['density_control_once_s']:.3f} s (once per interval)")
+    c = res["counts"]
+    if c:
+        print(f"  per step (mean of {c['steps']} steps): {c['ops_per_step']:.0f} tensor operations, "
+              f"{c['syncs_per_step']:.2f} host syncs ({c['views_per_step']:.0f} views not counted)")
+        if c["syncs_by_op"]:
+            print(f"  syncs by operation ({c['steps']} steps): "
+                  + ", ".join(f"{k} {v}" for k, v in c["syncs_by_op"].items()))
     print(f"  machine load average   {', '.join(f'{x:.1f}' for x in res['machine']['load_average'])}")
     if args.json:
         from rmavatar.utils.outputs import output_file

@@ -108,6 +108,9 @@ def _step_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU path)")
     parser.add_argument("--no-rectifier", action="store_true", help="time the 'w/o GauRec' model")
+    parser.add_argument("--count-steps", type=int, default=20,
+                        help="further steps run under an operation counter: tensor operations and host syncs "
+                             "per step (default 20; 0 = skip)")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
 
 

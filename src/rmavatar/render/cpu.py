@@ -24,7 +24,7 @@ class _Binning:
         self.width, self.height = int(width), int(height)
         self.tiles_x = math.ceil(self.width / kernels.TILE)
         self.tiles_y = math.ceil(self.height / kernels.TILE)
-        vis_ids = torch.nonzero(visible, as_tuple=False)[:, 0].cpu().numpy()
+        vis_ids = np.flatnonzero(visible.cpu().numpy())
         d = _np64(depths)[vis_ids]
         # Stable sort: equal depths keep index order, matching a stable global sort.
         order = vis_ids[np.argsort(d, kind="stable")].astype(np.int64)

@@ -62,19 +62,20 @@ class GaussianSet:
 
 
 def render_gaussians(gs: GaussianSet, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-                     background: torch.Tensor | None = None, backend: str = "auto"):
+                     background: torch.Tensor | None = None, backend: str = "auto", check: bool = True):
     """Rasterize ``gs`` seen by the camera (viewmat [4,4] world -> camera, K [3,3]) into a
     ``width`` x ``height`` image: returns (image [H,W,3], alpha [H,W,1], info) as :func:`rasterize` does.
 
     viewmat, K and background [3] may live on any device or be numpy arrays: they are moved to the
     Gaussians' device and dtype. Differentiable; wrap in ``torch.no_grad()`` to only look.
+    ``check``: as :func:`rasterize`'s (False in training, whose guard stays on the device).
     """
     like = gs.means
     viewmat, K = _like(viewmat, like), _like(K, like)
     if background is not None:
         background = _like(background, like)
     return rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(viewmat), viewmat, K, width, height,
-                     background=background, backend=backend)
+                     background=background, backend=backend, check=check)
 
 
 def _like(x, like: torch.Tensor) -> torch.Tensor:

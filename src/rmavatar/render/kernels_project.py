@@ -5,7 +5,8 @@ Gaussian so a projection costs two parallel loops instead of a hundred small ten
 Forward, per Gaussian: p = R_v m + t; Sigma = R S S R^T (R from the normalised quaternion);
 Sigma_c = R_v Sigma R_v^T; J at the frustum-clamped point; cov = J Sigma_c J^T + 0.3 I;
 conic = cov^-1; mean2d = (fx x / z + cx, fy y / z + cy).
-Backward: the chain rule through each step, with the clamp straight-through (as gsplat).
+Backward: the chain rule through each step, the clamp included (as gsplat 1.5.3's persp_proj_vjp):
+a component clamped to the guard band moves J only through z.
 """
 
 from __future__ import annotations
@@ -78,7 +79,8 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
         y = Rv[1, 0] * m[0] + Rv[1, 1] * m[1] + Rv[1, 2] * m[2] + viewmat[1, 3]
         z = Rv[2, 0] * m[0] + Rv[2, 1] * m[1] + Rv[2, 2] * m[2] + viewmat[2, 3]
         depths[g] = z
-        if not (z >= NEAR_PLANE and z <= FAR_PLANE):
+        # NaN fails every comparison: such rows are culled here or by the determinant test below.
+        if not (z >= NEAR_PLANE and z <= FAR_PLANE and math.isfinite(x) and math.isfinite(y)):
             continue
         R = np.empty((3, 3))
         M = np.empty((3, 3))
@@ -192,15 +194,27 @@ def project_backward(means, quats, scales, viewmat, K, width, height, conics, ha
                 vJ[i, k] = 2.0 * (VJ[i, 0] * Sc[0, k] + VJ[i, 1] * Sc[1, k] + VJ[i, 2] * Sc[2, k])
         vu = v_means2d[g, 0]
         vv = v_means2d[g, 1]
-        # J entries and mean2d w.r.t. the camera-space point (tx, ty straight-through).
-        vx = fx * rz * vu - fx * rz2 * vJ[0, 2]
-        vy = fy * rz * vv - fy * rz2 * vJ[1, 2]
+        # J entries and mean2d w.r.t. the camera-space point. J02 = -fx tx / z^2 with tx = x inside the
+        # band (bounds included, as gsplat): dJ02/dx = -fx / z^2, dJ02/dz = 2 fx tx / z^3; outside,
+        # tx = z lim: dJ02/dx = 0, dJ02/dz = fx tx / z^3. Likewise J12 with y.
+        rz3 = rz2 * rz
+        vx = fx * rz * vu
+        vy = fy * rz * vv
         vz = (
             -fx * x * rz2 * vu - fy * y * rz2 * vv
             - fx * rz2 * vJ[0, 0] - fy * rz2 * vJ[1, 1]
-            + 2.0 * fx * tx * rz2 * rz * vJ[0, 2] + 2.0 * fy * ty * rz2 * rz * vJ[1, 2]
             + v_depths[g]
         )
+        if x * rz <= lim_x_pos and x * rz >= -lim_x_neg:
+            vx -= fx * rz2 * vJ[0, 2]
+            vz += 2.0 * fx * tx * rz3 * vJ[0, 2]
+        else:
+            vz += fx * tx * rz3 * vJ[0, 2]
+        if y * rz <= lim_y_pos and y * rz >= -lim_y_neg:
+            vy -= fy * rz2 * vJ[1, 2]
+            vz += 2.0 * fy * ty * rz3 * vJ[1, 2]
+        else:
+            vz += fy * ty * rz3 * vJ[1, 2]
         for i in range(3):
             v_means[g, i] = Rv[0, i] * vx + Rv[1, i] * vy + Rv[2, i] * vz
         # Sc = Rv Sigma Rv^T: v_Sigma = Rv^T vSc Rv; Sigma = M M^T: v_M = 2 v_Sigma M (symmetric).

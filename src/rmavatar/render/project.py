@@ -81,10 +81,12 @@ def project_gaussians(
     lim_x_neg = cx / fx + 0.3 * tan_fovx
     lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
     lim_y_neg = cy / fy + 0.3 * tan_fovy
-    # The Jacobian is evaluated at the point clamped to a guard band around the frustum. As in
-    # gsplat's hand-written backward the clamp itself is not differentiated (straight-through).
-    tx = x + (zs * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x / zs)) - x).detach()
-    ty = y + (zs * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y / zs)) - y).detach()
+    # The Jacobian is evaluated at the point clamped to a guard band around the frustum, and the clamp
+    # is differentiated as gsplat 1.5.3 does (its persp_proj_vjp and its torch _persp_proj): inside the
+    # band (bounds included) J depends on x, y, z as written; outside, tx = z * lim, so the clamped
+    # component only moves J through z.
+    tx = zs * torch.clamp(x / zs, min=-lim_x_neg, max=lim_x_pos)
+    ty = zs * torch.clamp(y / zs, min=-lim_y_neg, max=lim_y_pos)
     rz = 1.0 / zs
     zero = torch.zeros_like(rz)
     J = torch.stack(

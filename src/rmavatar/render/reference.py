@@ -25,18 +25,13 @@ def _rotation(q: Tensor) -> Tensor:
     return eye + 2 * w * vx + 2 * vx @ vx
 
 
-def reference_rasterize(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-    viewmat: Tensor, K: Tensor, width: int, height: int,
-    background: Tensor | None = None, sh_degree: int | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Same arguments as ``rasterize`` (CPU tensors). Returns image [H,W,3], alpha [H,W,1] and
-    means2d [N,2], all float64 and differentiable."""
+def reference_project(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+    width: int, height: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The projection alone (float64 CPU tensors): means2d [N,2], inverse 2D covariances [N,2,2]
+    (identity where culled), depths [N] and the kept mask [N] (gsplat's culling)."""
     f64 = torch.float64
-    means, quats, scales, opacities, colors = (t.to(f64) for t in (means, quats, scales, opacities, colors))
-    viewmat, K = viewmat.to(f64), K.to(f64)
-    bg = torch.zeros(3, dtype=f64) if background is None else background.to(f64)
-
     Rv, tv = viewmat[:3, :3], viewmat[:3, 3]
     pc = torch.einsum("ij,nj->ni", Rv, means) + tv
     z = pc[:, 2]
@@ -49,11 +44,12 @@ def reference_rasterize(
 
     Rw = Rv @ _rotation(quats)  # camera-from-Gaussian rotation
     L = Rw * scales[:, None, :]
-    # Jacobian at the point clamped to 1.3x the frustum; the clamp is straight-through (gsplat).
+    # Jacobian at the point clamped to 1.3x the frustum, the clamp differentiated (gsplat 1.5.3: a
+    # clamped component no longer depends on x or y, only on z through z * limit).
     limx = torch.stack([-(cx / fx + 0.15 * width / fx), (width - cx) / fx + 0.15 * width / fx])
     limy = torch.stack([-(cy / fy + 0.15 * height / fy), (height - cy) / fy + 0.15 * height / fy])
-    xc = pc[:, 0] + (zs * torch.clamp(pc[:, 0] / zs, limx[0], limx[1]) - pc[:, 0]).detach()
-    yc = pc[:, 1] + (zs * torch.clamp(pc[:, 1] / zs, limy[0], limy[1]) - pc[:, 1]).detach()
+    xc = zs * torch.clamp(pc[:, 0] / zs, limx[0], limx[1])
+    yc = zs * torch.clamp(pc[:, 1] / zs, limy[0], limy[1])
     J = torch.zeros(len(means), 2, 3, dtype=f64)
     J[:, 0, 0] = fx / zs
     J[:, 0, 2] = -fx * xc / zs**2
@@ -72,6 +68,22 @@ def reference_rasterize(
         ry = torch.ceil(ext * cov[:, 1, 1].sqrt())
         ok = ok & ((rx > 0) | (ry > 0))
         ok = ok & (u + rx > 0) & (u - rx < width) & (v + ry > 0) & (v - ry < height)
+    return means2d, inv, z, ok
+
+
+def reference_rasterize(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
+    viewmat: Tensor, K: Tensor, width: int, height: int,
+    background: Tensor | None = None, sh_degree: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Same arguments as ``rasterize`` (CPU tensors). Returns image [H,W,3], alpha [H,W,1] and
+    means2d [N,2], all float64 and differentiable."""
+    f64 = torch.float64
+    means, quats, scales, opacities, colors = (t.to(f64) for t in (means, quats, scales, opacities, colors))
+    viewmat, K = viewmat.to(f64), K.to(f64)
+    bg = torch.zeros(3, dtype=f64) if background is None else background.to(f64)
+    Rv, tv = viewmat[:3, :3], viewmat[:3, 3]
+    means2d, inv, z, ok = reference_project(means, quats, scales, opacities, viewmat, K, width, height)
 
     if sh_degree is not None or colors.dim() == 3:
         deg = sh_degree if sh_degree is not None else int(round(colors.shape[1] ** 0.5)) - 1

@@ -256,8 +256,9 @@ class DensityController:
         self.grad_accum = torch.zeros(n, device=dev)
         self.count = torch.zeros(n, device=dev)
 
-    def accumulate(self, info: dict, width: int, height: int) -> None:
-        """Add this step's view-space gradient norms of the visible Gaussians."""
+    def accumulate(self, info: dict, width: int, height: int, valid: torch.Tensor | None = None) -> None:
+        """Add this step's view-space gradient norms of the visible Gaussians. ``valid``: a bool tensor,
+        False for a step that was skipped (non-finite): it adds nothing (decided on the device)."""
         m2d = info["means2d"]
         grad = m2d.grad if m2d.grad is not None else None
         if grad is None:
@@ -272,19 +273,24 @@ class DensityController:
         g = grad.detach().to(self.grad_accum.dtype) * grad.new_tensor([width / 2.0, height / 2.0]).to(self.grad_accum.dtype)
         norm = torch.linalg.vector_norm(g, dim=-1)
         vis = visible.to(self.grad_accum.device)
-        self.grad_accum += torch.where(vis, norm, torch.zeros_like(norm))
+        if valid is not None:
+            vis = vis & valid
+        self.grad_accum += torch.where(vis, norm, 0.0)
         self.count += vis.to(self.count.dtype)
 
     def grad_average(self) -> torch.Tensor:
         return self.grad_accum / self.count.clamp_min(1.0)
 
-    def after_step(self, iteration: int, info: dict, width: int, height: int) -> dict:
-        """Returns what happened: {"cloned", "split", "pruned", "reset"} (only the keys that apply)."""
+    def after_step(self, iteration: int, info: dict, width: int, height: int,
+                   valid: torch.Tensor | None = None) -> dict:
+        """Returns what happened: {"cloned", "split", "pruned", "reset"} (only the keys that apply).
+        ``valid``: see :meth:`accumulate`. Densifying and pruning read counts on the host (syncs);
+        gathering statistics does not."""
         out: dict = {}
         if not self.config.enabled:
             return out
         if self.schedule.gather_at(iteration):
-            self.accumulate(info, width, height)
+            self.accumulate(info, width, height, valid)
         if self.schedule.densify_at(iteration):
             out.update(self.densify_and_prune())
         if self.schedule.reset_at(iteration):

@@ -57,7 +57,10 @@ class OptimConfig:
         ]
         if avatar.rectifier is not None:
             groups.append({"name": "rectifier", "params": list(avatar.rectifier.parameters()), "lr": self.lr_rectifier})
-        return torch.optim.Adam(groups, lr=self.lr_position, eps=self.adam_eps)
+        # Fused Adam (one kernel per group; CPU and CUDA) is faster than the per-tensor loop and can
+        # skip a step on the device (``found_inf``), which the trainer's NaN guard relies on.
+        fused = avatar.means.device.type in ("cpu", "cuda")
+        return torch.optim.Adam(groups, lr=self.lr_position, eps=self.adam_eps, fused=fused or None)
 
     def position_lr(self, iteration: int) -> float:
         """The position group's lr before step ``iteration + 1`` (0-based count of steps done)."""

@@ -109,11 +109,6 @@ def composite_target(image: torch.Tensor, mask: torch.Tensor, bg: torch.Tensor) 
     return image * m + bg * (1.0 - m)
 
 
-def psnr_value(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(torch.mean((a.detach() - b.detach()) ** 2))
-    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
-
-
 def resolve_body(cfg: TrainConfig, dataset) -> tuple[str, str | None]:
     """(body spec, gender): the config's choice, else the dataset's preset, else anny with its gender."""
     spec = cfg.model.body or getattr(dataset, "body", None) or "anny"
@@ -324,6 +319,7 @@ class Trainer:
         self.avatar.train()
         self.optimizer = cfg.optim.build(self.avatar)
         self.density = cfg.density.build(self.avatar, self.optimizer, cfg.optim.iters, seed=cfg.seed)
+        self._guard = _NonFiniteGuard(dev, cfg.log.max_bad_steps)
         self.iteration = 0
         if self.ckpt is not None:
             self.optimizer.load_state_dict(self.ckpt["optimizer"])
@@ -361,9 +357,16 @@ class Trainer:
         })
 
     # --- one step ---------------------------------------------------------------------------------
-    def step(self) -> dict | None:
-        """One iteration; returns its scalars, or None when it was skipped (non-finite loss/gradient).
-        Does not advance ``iteration`` (the loop does, so a skipped step still moves the schedules on)."""
+    def step(self) -> dict:
+        """One iteration. Returns its values as tensors on the device (reading them is the caller's
+        choice: the loop does so once per logging interval): "ok" (bool: the loss and all gradients
+        were finite, so the step was applied; otherwise nothing was changed), "loss", each loss term,
+        "image", "target"; and "frame", "lr_position", "events" (density control) as Python values.
+        Does not advance ``iteration`` (the loop does, so a skipped step still moves the schedules on).
+
+        No host synchronisation: the finiteness guard stays on the device. The fused Adam skips its
+        update when told a value was non-finite (``found_inf``, as under ``torch.amp.GradScaler``), and
+        the density statistics leave such a step out. Density control itself may sync (it is rare)."""
         cfg = self.cfg
         it = self.iteration + 1
         lr = cfg.optim.position_lr(it - 1)
@@ -372,25 +375,31 @@ class Trainer:
                 group["lr"] = lr
         self.avatar.set_progress(it, cfg.optim.iters)
         i = self.sampler.next()
-        bg = background_color(cfg.background, self.bg_generator).to(self.device)
+        bg = background_color(cfg.background, self.bg_generator).to(self.device, non_blocking=True)
         target = self.target(i, bg)
         gs = self.avatar(self.vertices[i], self.body_pose[i])
-        if not _all_finite(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh):
-            return None  # the rasterizer refuses non-finite input; nothing was changed yet
-        image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height, background=bg)
+        # Checked on the device: the rasterizer culls non-finite Gaussians instead of refusing them.
+        ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)
+        image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
+                                          background=bg, check=False)
         loss, parts = total_loss(image, target, gs, cfg.loss)
-        if not torch.isfinite(loss):
-            return None
         loss.backward()
-        if not _grads_finite(self.optimizer):
-            self.optimizer.zero_grad(set_to_none=True)
-            return None
-        self.optimizer.step()
+        grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
+        ok = ok & torch.isfinite(loss) & _finite_flag(*grads)
+        self._optimizer_step(ok)
         self.optimizer.zero_grad(set_to_none=True)
-        events = self.density.after_step(it, info, self.width, self.height)
-        return {"loss": float(loss.detach()), "psnr": psnr_value(image, target), "frame": i, "lr_position": lr,
-                **{k: float(v) for k, v in parts.items()}, "events": events,
+        events = self.density.after_step(it, info, self.width, self.height, valid=ok)
+        self._guard.update(ok)
+        return {"ok": ok, "loss": loss.detach(), **parts, "frame": i, "lr_position": lr, "events": events,
                 "image": image.detach(), "target": target}
+
+    def _optimizer_step(self, ok: torch.Tensor) -> None:
+        if self.optimizer.defaults.get("fused"):
+            self.optimizer.grad_scale = None
+            self.optimizer.found_inf = (~ok).to(torch.float32)
+            self.optimizer.step()
+        elif bool(ok):  # an optimiser without device-side skipping: one sync
+            self.optimizer.step()
 
     # --- loop ---------------------------------------------------------------------------------
     def run(self) -> TrainResult:
@@ -406,7 +415,6 @@ class Trainer:
                   f"Gaussians, {self.device}, {torch.get_num_threads()} threads -> {self.run_dir}", flush=True)
         writer = _tensorboard(self.run_dir) if cfg.log.tensorboard else None
         history: list[dict] = []
-        bad = 0
         interrupted = False
         from tqdm import tqdm
 
@@ -416,25 +424,6 @@ class Trainer:
             with _Interrupt() as stop:
                 while self.iteration < total:
                     out = self.step()
-                    if out is None:
-                        bad += 1
-                        # The model was not touched; the iteration still counts so the schedule advances.
-                        self.iteration += 1
-                        bar.write(f"iteration {self.iteration}: non-finite loss or gradient, step skipped "
-                                  f"({bad} in a row)")
-                        if writer:
-                            writer.add_scalar("train/skipped_steps", bad, self.iteration)
-                        if bad >= cfg.log.max_bad_steps:
-                            self.save()
-                            raise UserError(
-                                f"training stopped at iteration {self.iteration}: {bad} consecutive steps had a "
-                                f"non-finite loss or gradient; the last good model is saved in "
-                                f"{checkpoint_path(self.run_dir)} (try a lower learning rate or check the data)")
-                        bar.update(1)
-                        if self.on_iteration:
-                            self.on_iteration(self.iteration, total)
-                        continue
-                    bad = 0
                     self.iteration += 1
                     self._report(out, writer, history, bar)
                     if self.iteration % cfg.log.checkpoint_every == 0 and self.iteration < total:
@@ -461,29 +450,43 @@ class Trainer:
         return TrainResult(self.iteration, interrupted, self.run_dir, history)
 
     def _report(self, out: dict, writer, history: list, bar) -> None:
+        """Progress, TensorBoard and previews. The step's tensors are read (one host sync for all of
+        them) only at a logging iteration; so are the non-finite-step counters, which stop the run
+        after ``max_bad_steps`` consecutive skipped steps."""
         cfg = self.cfg
         it = self.iteration
         n = self.avatar.num_gaussians
         bar.update(1)
-        if it % cfg.log.progress_every == 0 or it == cfg.optim.iters:
-            history.append({"iteration": it, "loss": out["loss"], "psnr": out["psnr"], "gaussians": n})
-            bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", N=n, refresh=False)
-        if writer and (it % cfg.log.tensorboard_every == 0):
-            for k, v in out.items():
-                if isinstance(v, float):
-                    writer.add_scalar(f"train/{k}", v, it)
-            writer.add_scalar("train/gaussians", n, it)
+        last = it == cfg.optim.iters
+        log_progress = it % cfg.log.progress_every == 0 or last
+        log_tb = writer is not None and it % cfg.log.tensorboard_every == 0
         if writer:
             for k, v in out["events"].items():  # density control: cloned / split / pruned counts, resets
                 writer.add_scalar(f"density/{k}", float(v), it)
-        if it % cfg.log.preview_every == 0 or it == cfg.optim.iters:
+        if not (log_progress or log_tb):
+            return
+        names = [k for k, v in out.items() if torch.is_tensor(v) and v.dim() == 0 and k != "ok"]
+        psnr = -10.0 * torch.log10(torch.mean((out["image"] - out["target"]) ** 2).clamp_min(1e-12))
+        values = torch.stack([out[k].float() for k in names] + [psnr.float(), out["ok"].float(),
+                                                                *self._guard.counters()])
+        *scalars, psnr_v, ok_v, skipped, longest = values.tolist()
+        scalars = dict(zip(names, scalars), psnr=psnr_v, lr_position=out["lr_position"])
+        self._guard.check(int(skipped), int(longest), it, bar, writer, self)
+        if log_progress and ok_v:
+            history.append({"iteration": it, "loss": scalars["loss"], "psnr": psnr_v, "gaussians": n})
+            bar.set_postfix(loss=f"{scalars['loss']:.4f}", psnr=f"{psnr_v:.2f}", N=n, refresh=False)
+        if log_tb and ok_v:
+            for k, v in scalars.items():
+                writer.add_scalar(f"train/{k}", v, it)
+            writer.add_scalar("train/gaussians", n, it)
+        if it % cfg.log.preview_every == 0 or last:
             self._preview(out["image"], out["target"], it, writer)
 
     def _preview(self, image: torch.Tensor, target: torch.Tensor, it: int, writer) -> None:
         from PIL import Image
 
         pair = torch.cat((image, target), dim=1).clamp(0, 1)
-        arr = (pair.numpy() * 255.0 + 0.5).astype(np.uint8)
+        arr = (pair.cpu().numpy() * 255.0 + 0.5).astype(np.uint8)  # numpy and PIL need host memory
         folder = self.run_dir / "previews"
         folder.mkdir(exist_ok=True)
         with atomic_path(folder / f"iter_{it:06d}.png") as tmp:
@@ -492,18 +495,51 @@ class Trainer:
             writer.add_image("preview/render_target", arr, it, dataformats="HWC")
 
 
-def _all_finite(*tensors: torch.Tensor) -> bool:
-    # A sum is NaN/Inf when any element is (or when finite values overflow: also worth skipping),
-    # and is one cheap reduction per tensor.
-    return bool(torch.isfinite(torch.stack([t.detach().sum() for t in tensors])).all())
+def _finite_flag(*tensors: torch.Tensor) -> torch.Tensor:
+    """A bool tensor on the tensors' device: every element of every tensor is finite. No host sync.
+
+    A sum is NaN/Inf when any element is (or when finite values overflow: also worth skipping), so
+    this is one fused reduction per tensor and one check."""
+    if not tensors:
+        return torch.ones((), dtype=torch.bool)
+    sums = torch._foreach_norm([t.detach() for t in tensors], 1)
+    return torch.isfinite(torch.stack(sums)).all()
 
 
-def _grads_finite(optimizer: torch.optim.Optimizer) -> bool:
-    grads = [p.grad for g in optimizer.param_groups for p in g["params"] if p.grad is not None]
-    if not grads:
-        return True
-    norms = torch._foreach_norm(grads)
-    return bool(torch.isfinite(torch.stack(norms)).all())
+class _NonFiniteGuard:
+    """Counts skipped (non-finite) steps on the device; :meth:`check` reads them at logging time and
+    stops the run after ``max_bad_steps`` consecutive ones (the model is untouched by skipped steps)."""
+
+    def __init__(self, device: torch.device, max_bad_steps: int):
+        self.max_bad_steps = max_bad_steps
+        self.skipped = torch.zeros((), device=device)  # since the last check
+        self.run = torch.zeros((), device=device)  # current streak
+        self.longest = torch.zeros((), device=device)  # longest streak since the last check
+
+    def update(self, ok: torch.Tensor) -> None:
+        bad = (~ok).to(self.run.dtype)
+        self.skipped += bad
+        self.run.add_(1.0).mul_(bad)
+        torch.maximum(self.longest, self.run, out=self.longest)
+
+    def counters(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.skipped, self.longest
+
+    def check(self, skipped: int, longest: int, it: int, bar, writer, trainer) -> None:
+        if skipped:
+            bar.write(f"iteration {it}: {skipped} step(s) since the last report skipped (non-finite loss or "
+                      f"gradient; longest streak {longest})")
+            if writer:
+                writer.add_scalar("train/skipped_steps", skipped, it)
+        self.skipped.zero_()
+        self.longest.copy_(self.run)
+        if longest >= self.max_bad_steps:
+            trainer.save()
+            raise UserError(
+                f"training stopped at iteration {it}: {longest} consecutive steps had a non-finite loss or "
+                f"gradient (log.max_bad_steps is {self.max_bad_steps}, checked at each progress report); "
+                f"the last good model is saved in {checkpoint_path(trainer.run_dir)} (try a lower "
+                f"learning rate or check the data)")
 
 
 def _tensorboard(run_dir: Path):

@@ -163,5 +163,5 @@ def avatar_viewer(trained, seq=None, fps: float = 30.0, host: str = "127.0.0.1",
         gs = trained.pose(seq, i)
         return gs.means, gs.quats, gs.scales, gs.opacities, gs.sh
 
-    state = ViewerState(frame_fn, len(seq), fps, center.numpy(), distance)
+    state = ViewerState(frame_fn, len(seq), fps, center.cpu().numpy(), distance)  # numpy needs host memory
     return AvatarViewer(state, host=host, port=port, verbose=verbose)
