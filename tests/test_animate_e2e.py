@@ -162,8 +162,9 @@ def test_animate_trained_run_png_orbit(trained_run, tmp_path):
     assert main(["animate", str(trained_run), "--motion", str(motion), "--out", f"{out}/", "--size", "32",
                  "--camera", "orbit", "--frames", "2:6", "--bg", "black"]) == 0
     keep(out)
-    names = sorted(p.name for p in out.iterdir())
+    names = sorted(p.name for p in out.iterdir() if p.name != ".rmavatar")  # the folder's output marker
     assert names == [f"frame_{i:05d}.png" for i in range(4)]
+    assert (out / ".rmavatar").is_file()
     imgs = [imageio.imread(out / n) for n in names]
     assert all(mask(i, bg=0).mean() > 0.03 for i in imgs) and (imgs[0][:2, :2] < 15).all()
 

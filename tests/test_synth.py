@@ -106,7 +106,7 @@ def test_bad_input(tmp_path):
     precious = tmp_path / "precious"
     precious.mkdir()
     (precious / "thesis.tex").write_text("do not delete")
-    with pytest.raises(UserError, match="not an rmavatar dataset"):
+    with pytest.raises(UserError, match="holds files that rmavatar did not write there"):
         synthesize(precious, SynthConfig(**TINY), progress=False)
     assert (precious / "thesis.tex").read_text() == "do not delete"
     assert not (tmp_path / "x").exists()
