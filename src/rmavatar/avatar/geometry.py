@@ -5,11 +5,10 @@ All functions are batched over leading dimensions and differentiable.
 
 from __future__ import annotations
 
-import functools
-
 import torch
 
 from rmavatar.render.project import quat_to_rotmat  # part of this module's API
+from rmavatar.utils.device import constant
 
 # Below this length a vector is treated as zero: a degenerate triangle then gets a zero scale w
 # (its Gaussians collapse onto its centroid) instead of NaNs.
@@ -47,16 +46,6 @@ def triangle_frames(
     w = 0.5 * (n1.squeeze(-1) + (a2 * e2).sum(-1).abs())
     M = tri.mean(-2)
     return R, w, M
-
-
-def _constant(values, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    return _constants(values, dtype, torch.device(device))
-
-
-@functools.lru_cache(maxsize=None)
-def _constants(values, dtype, device):
-    # One copy per (table, dtype, device): a training step must not rebuild (or upload) them.
-    return torch.tensor(values, dtype=dtype, device=device)
 
 
 def _left_table() -> tuple:
@@ -99,12 +88,12 @@ _SHEPPERD = _shepperd_table()
 
 def quat_identity(dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
     """The identity quaternion (1, 0, 0, 0) [4]; one cached tensor per dtype and device (read-only)."""
-    return _constant((1.0, 0.0, 0.0, 0.0), dtype, device or "cpu")
+    return constant((1.0, 0.0, 0.0, 0.0), dtype, device or "cpu")
 
 
 def quat_left_matrix(a: torch.Tensor) -> torch.Tensor:
     """L(a) [...,4,4] with L(a) b = a (x) b for quaternions a [...,4] (wxyz): one matrix product."""
-    return (a @ _constant(_LEFT, a.dtype, a.device)).unflatten(-1, (4, 4))
+    return (a @ constant(_LEFT, a.dtype, a.device)).unflatten(-1, (4, 4))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -119,7 +108,7 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     with the largest diagonal entry (the largest |q_k|, at least 1/2), normalised: the result stays
     accurate (and gradients finite) for every rotation.
     """
-    table = _constant(_SHEPPERD, R.dtype, R.device)
+    table = constant(_SHEPPERD, R.dtype, R.device)
     K = torch.addmm(table[0], R.reshape(-1, 9), table[1:]).reshape(R.shape[:-2] + (4, 4))
     best = K.diagonal(dim1=-2, dim2=-1).argmax(-1, keepdim=True)
     row = torch.gather(K, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
