@@ -456,3 +456,99 @@ def test_set_progress_schedules():
     b = Avatar(f, None, v, AvatarConfig(coarse_to_fine=False))
     b.set_progress(0, 1000)
     assert float(b.rectifier.freq_alpha) == 6.0
+
+
+# ---------------------------------------------------------------- the batched forms against the plain formulas
+# The library builds frames, Shepperd's quaternion and Hamilton products with few, large tensor
+# operations (a training step's launch count); these are the element-by-element formulas they replace.
+def _frames_plain(vertices, faces):
+    v0, v1, v2 = vertices[..., faces, :].unbind(-2)
+    e1, e2 = v1 - v0, v2 - v0
+    unit = lambda x: x / torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(1e-12)  # noqa: E731
+    a0 = unit(e1)
+    a1 = unit(torch.linalg.cross(a0, e2, dim=-1))
+    a2 = torch.linalg.cross(a0, a1, dim=-1)
+    w = 0.5 * (torch.linalg.vector_norm(e1, dim=-1) + (a2 * e2).sum(-1).abs())
+    return torch.stack((a0, a1, a2), dim=-1), w, (v0 + v1 + v2) / 3.0
+
+
+def _quat_multiply_plain(a, b):
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), dim=-1)
+
+
+def _rotmat_to_quat_plain(R):
+    m = [[R[..., i, j] for j in range(3)] for i in range(3)]
+    t = torch.stack((1 + m[0][0] + m[1][1] + m[2][2], 1 + m[0][0] - m[1][1] - m[2][2],
+                     1 - m[0][0] + m[1][1] - m[2][2], 1 - m[0][0] - m[1][1] + m[2][2]), dim=-1)
+    a, b, c = m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1]
+    d, e, f = m[1][0] + m[0][1], m[0][2] + m[2][0], m[2][1] + m[1][2]
+    cand = torch.stack((torch.stack((t[..., 0], a, b, c), -1), torch.stack((a, t[..., 1], d, e), -1),
+                        torch.stack((b, d, t[..., 2], f), -1), torch.stack((c, e, f, t[..., 3]), -1)), dim=-2)
+    cand = cand / (2.0 * t.clamp_min(1e-8).sqrt()).unsqueeze(-1)
+    best = t.argmax(-1, keepdim=True)
+    q = torch.gather(cand, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _assert_same_values_and_gradients(fa, fb, inputs, gen, rtol=1e-10):
+    a, b = fa(*inputs), fb(*inputs)
+    a, b = (a,) if torch.is_tensor(a) else a, (b,) if torch.is_tensor(b) else b
+    grads_out = [torch.randn(x.shape, generator=gen, dtype=x.dtype) for x in a]
+    for x, y in zip(a, b):
+        assert torch.allclose(x, y, rtol=rtol, atol=rtol * float(x.detach().abs().max()))
+    ga = torch.autograd.grad(sum((x * g).sum() for x, g in zip(a, grads_out)), inputs)
+    gb = torch.autograd.grad(sum((y * g).sum() for y, g in zip(b, grads_out)), inputs)
+    for x, y in zip(ga, gb):
+        assert torch.allclose(x, y, rtol=rtol, atol=rtol * float(x.detach().abs().max()))
+
+
+def test_frames_match_the_plain_formulas():
+    gen = torch.Generator().manual_seed(11)
+    v, f = sphere()
+    v = (v.double() + 0.01 * torch.randn(v.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    vb = torch.stack((v.detach(), 1.3 * v.detach())).requires_grad_(True)
+    for x in (v, vb):
+        _assert_same_values_and_gradients(lambda x: _frames_plain(x, f), lambda x: triangle_frames(x, f), (x,), gen)
+
+
+def test_rotmat_to_quat_matches_the_plain_formula():
+    gen = torch.Generator().manual_seed(12)
+    q = torch.randn(400, 4, generator=gen, dtype=torch.float64)
+    q[:40, 0] = 1e-9  # near 180 degrees: another row of K is picked
+    q[40:80, 1:3] = 0.0
+    R = quat_to_rotmat(q)
+    # Off SO(3) too (frames of float32 meshes are rotations only to rounding), and with every row picked.
+    R = torch.cat((R, R + 0.05 * torch.randn(R.shape, generator=gen, dtype=torch.float64))).requires_grad_(True)
+    _assert_same_values_and_gradients(_rotmat_to_quat_plain, rotmat_to_quat, (R,), gen)
+    K_best = _rotmat_to_quat_plain(R).abs().argmax(-1)
+    assert set(K_best.tolist()) == {0, 1, 2, 3}
+
+
+def test_quat_multiply_matches_the_hamilton_formula():
+    gen = torch.Generator().manual_seed(13)
+    a = torch.randn(300, 4, generator=gen, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(300, 4, generator=gen, dtype=torch.float64, requires_grad=True)
+    _assert_same_values_and_gradients(_quat_multiply_plain, quat_multiply, (a, b), gen)
+
+
+def test_posed_matches_the_plain_embedding():
+    gen = torch.Generator().manual_seed(14)
+    v, f = sphere()
+    av = Avatar(f, None, v, AvatarConfig(rectifier=False, placement="area", num_gaussians=3 * f.shape[0])).double()
+    randomise(av, gen)
+    v = (v.double() + 0.02 * torch.randn(v.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
+
+    def plain(vertices, means, quats, log_scales):
+        R, w, M = _frames_plain(vertices, av.faces[av.face_ids])
+        mu = w.unsqueeze(-1) * (R @ means.unsqueeze(-1)).squeeze(-1) + M
+        r = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)
+        return mu, _quat_multiply_plain(_rotmat_to_quat_plain(R), r), w.unsqueeze(-1) * torch.exp(log_scales)
+
+    def library(vertices, *params):  # the avatar's own parameters are the inputs
+        return av._posed(vertices)[:3]
+
+    _assert_same_values_and_gradients(plain, library, (v, av.means, av.quats, av.log_scales), gen)

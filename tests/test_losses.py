@@ -112,3 +112,26 @@ def test_loss_gradients_reach_every_avatar_parameter(device):
     loss.backward()
     for name, p in av.named_parameters():
         assert p.grad is not None and p.grad.abs().max() > 0, name
+
+
+def test_total_loss_equals_the_plain_weighted_sum_in_float64():
+    """Values and gradients of the loss equal those of the terms added one by one (float64)."""
+    from rmavatar.evaluate import lpips, ssim
+
+    gen = torch.Generator().manual_seed(3)
+    render = torch.rand(40, 40, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
+    target = torch.rand(40, 40, 3, generator=gen, dtype=torch.float64)
+    g = _fake_set()
+    for t in (g.local_means, g.local_log_scales, *g.offsets):
+        t.data = t.data.double()
+    cfg = LossConfig()
+    plain = (cfg.rgb * (render - target).abs().mean() + cfg.ssim * (1.0 - ssim(render, target, check_range=False))
+             + cfg.lpips * lpips(render.clamp(0.0, 1.0), target, check_range=False)
+             + cfg.pos * position_loss(g.local_means, cfg.eps_pos)
+             + cfg.scaling * scaling_loss(g.local_log_scales, cfg.eps_scaling) + cfg.offset * offset_loss(*g.offsets))
+    loss, _ = total_loss(render, target, g, cfg)
+    assert loss.dtype == torch.float64
+    assert math.isclose(float(loss.detach()), float(plain.detach()), rel_tol=1e-12)
+    inputs = (render, g.local_means, g.local_log_scales, *g.offsets)
+    for a, b in zip(torch.autograd.grad(loss, inputs), torch.autograd.grad(plain, inputs)):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(b.abs().max()))

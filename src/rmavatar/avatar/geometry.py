@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 
 from rmavatar.render.project import quat_to_rotmat  # part of this module's API
+from rmavatar.utils.device import constant
 
 # Below this length a vector is treated as zero: a degenerate triangle then gets a zero scale w
 # (its Gaussians collapse onto its centroid) instead of NaNs.
@@ -36,67 +37,83 @@ def triangle_frames(
     if faces.dim() != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must be [F,3], got {tuple(faces.shape)}")
     tri = vertices[..., faces, :]  # [B,F,3,3]: corner, xyz
-    v0, v1, v2 = tri.unbind(-2)
-    e1 = v1 - v0
-    e2 = v2 - v0
-    a0 = _normalize(e1)
+    e1, e2 = (tri[..., 1:, :] - tri[..., :1, :]).unbind(-2)  # both edges from v0 in one operation
+    n1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+    a0 = e1 / n1.clamp_min(_EPS)
     a1 = _normalize(torch.linalg.cross(a0, e2, dim=-1))
     a2 = torch.linalg.cross(a0, a1, dim=-1)
     R = torch.stack((a0, a1, a2), dim=-1)
-    w = 0.5 * (torch.linalg.vector_norm(e1, dim=-1) + (a2 * e2).sum(-1).abs())
-    M = (v0 + v1 + v2) / 3.0
+    w = 0.5 * (n1.squeeze(-1) + (a2 * e2).sum(-1).abs())
+    M = tri.mean(-2)
     return R, w, M
+
+
+def _left_table() -> tuple:
+    """[4,16]: a @ table = L(a) flattened, where L(a) b = a (x) b (Hamilton product, wxyz)."""
+    # L(a)[i][j] = sign * a[k], written as (k, sign) per entry.
+    L = (((0, 1), (1, -1), (2, -1), (3, -1)),
+         ((1, 1), (0, 1), (3, -1), (2, 1)),
+         ((2, 1), (3, 1), (0, 1), (1, -1)),
+         ((3, 1), (2, -1), (1, 1), (0, 1)))
+    table = [[0.0] * 16 for _ in range(4)]
+    for i, row in enumerate(L):
+        for j, (k, sign) in enumerate(row):
+            table[k][4 * i + j] = float(sign)
+    return tuple(map(tuple, table))
+
+
+def _shepperd_table() -> tuple:
+    """[10,16]: [1, R flattened] @ table = the symmetric matrix K whose row k is 4 q_k q (R = R(q)).
+
+    Diagonal: 1 +- m00 +- m11 +- m22 (4 w^2, 4 x^2, 4 y^2, 4 z^2); off the diagonal the sums and
+    differences of R's symmetric entries (4 w x = m21 - m12, 4 x y = m10 + m01, ...)."""
+    m = {(r, c): 1 + 3 * r + c for r in range(3) for c in range(3)}  # column of m_rc ([0] is the 1)
+    diag = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
+    off = {(0, 1): ((2, 1, 1), (1, 2, -1)), (0, 2): ((0, 2, 1), (2, 0, -1)), (0, 3): ((1, 0, 1), (0, 1, -1)),
+           (1, 2): ((1, 0, 1), (0, 1, 1)), (1, 3): ((0, 2, 1), (2, 0, 1)), (2, 3): ((2, 1, 1), (1, 2, 1))}
+    table = [[0.0] * 16 for _ in range(10)]
+    for k, signs in enumerate(diag):
+        table[0][5 * k] = 1.0
+        for d, sign in enumerate(signs):
+            table[m[d, d]][5 * k] = float(sign)
+    for (i, j), terms in off.items():
+        for r, c, sign in terms:
+            table[m[r, c]][4 * i + j] = table[m[r, c]][4 * j + i] = float(sign)
+    return tuple(map(tuple, table))
+
+
+_LEFT = _left_table()
+_SHEPPERD = _shepperd_table()
+
+
+def quat_identity(dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
+    """The identity quaternion (1, 0, 0, 0) [4]; one cached tensor per dtype and device (read-only)."""
+    return constant((1.0, 0.0, 0.0, 0.0), dtype, device or "cpu")
+
+
+def quat_left_matrix(a: torch.Tensor) -> torch.Tensor:
+    """L(a) [...,4,4] with L(a) b = a (x) b for quaternions a [...,4] (wxyz): one matrix product."""
+    return (a @ constant(_LEFT, a.dtype, a.device)).unflatten(-1, (4, 4))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a (x) b of quaternions [...,4] (wxyz); rotation of a after b."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        dim=-1,
-    )
+    return (quat_left_matrix(a) @ b.unsqueeze(-1)).squeeze(-1)
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternions [...,4] (wxyz, w >= 0 where possible) of rotation matrices [...,3,3].
 
-    Shepperd's method: of the four algebraically equal formulas, each element uses the one with
-    the largest denominator, so the result stays accurate (and gradients finite) for every rotation.
+    Shepperd's method: row k of K (see _shepperd_table) is 4 q_k q, so each element uses the row
+    with the largest diagonal entry (the largest |q_k|, at least 1/2), normalised: the result stays
+    accurate (and gradients finite) for every rotation.
     """
-    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    t = torch.stack(
-        (
-            1 + m00 + m11 + m22,
-            1 + m00 - m11 - m22,
-            1 - m00 + m11 - m22,
-            1 - m00 - m11 + m22,
-        ),
-        dim=-1,
-    )  # 4 w^2, 4 x^2, 4 y^2, 4 z^2
-    a, b, c = m21 - m12, m02 - m20, m10 - m01
-    d, e, f = m10 + m01, m02 + m20, m21 + m12
-    cand = torch.stack(
-        (
-            torch.stack((t[..., 0], a, b, c), -1),
-            torch.stack((a, t[..., 1], d, e), -1),
-            torch.stack((b, d, t[..., 2], f), -1),
-            torch.stack((c, e, f, t[..., 3]), -1),
-        ),
-        dim=-2,
-    )  # [...,4 candidates,4]
-    cand = cand / (2.0 * t.clamp_min(1e-8).sqrt()).unsqueeze(-1)
-    best = t.argmax(-1, keepdim=True)
-    q = torch.gather(cand, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
-    q = torch.where(q[..., :1] < 0, -q, q)
-    return _normalize(q)
+    table = constant(_SHEPPERD, R.dtype, R.device)
+    K = torch.addmm(table[0], R.reshape(-1, 9), table[1:]).reshape(R.shape[:-2] + (4, 4))
+    best = K.diagonal(dim1=-2, dim2=-1).argmax(-1, keepdim=True)
+    row = torch.gather(K, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
+    norm = torch.linalg.vector_norm(row, dim=-1, keepdim=True).clamp_min(_EPS)
+    return row / torch.where(row[..., :1] < 0, -norm, norm)
 
 
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from rmavatar.avatar.geometry import quat_multiply, rotmat_to_quat, triangle_frames
+from rmavatar.avatar.geometry import quat_identity, quat_left_matrix, quat_multiply, rotmat_to_quat, triangle_frames
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
@@ -330,23 +330,28 @@ class Avatar(nn.Module):
         return w.unsqueeze(-1) * (R @ self.means.unsqueeze(-1)).squeeze(-1) + M
 
     def _posed(self, vertices: torch.Tensor):
-        """mu*, r*, s* and the frames they came from: R [Fb,3,3] of the binding faces, every
-        Gaussian's index into them, slot [N], and its triangle's scale w [N]."""
+        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3] and scale w [N], and its
+        index into the binding faces, slot [N]."""
         if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
             raise ValueError(
                 f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
             )
         vertices = vertices.to(self.means.dtype)
-        # Frames for the faces in use only (binding faces; far fewer than N after densification).
+        # Frames for the faces in use only (binding faces; far fewer than N after densification),
+        # gathered to the Gaussians in one indexing: R, w R, M, w and L(quat(R)) (the matrix of
+        # r -> quat(R) (x) r), so that mu* and r* are one batched matrix product each.
         R, w, M = triangle_frames(vertices, self.faces[self.binding_faces])
-        q = rotmat_to_quat(R)
+        R9 = R.flatten(-2)
+        table = torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
+                           quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
         slot = self._face_slot()
-        Rg, w, M, q = R[slot], w[slot], M[slot], q[slot]
-        mu_star = w.unsqueeze(-1) * (Rg @ self.means.unsqueeze(-1)).squeeze(-1) + M
+        g = table[slot]
+        frames, wR, M, w = g[:, 0:9].unflatten(-1, (3, 3)), g[:, 9:18].unflatten(-1, (3, 3)), g[:, 18:21], g[:, 21]
+        mu_star = torch.baddbmm(M.unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
         r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
-        r_star = quat_multiply(q, r)
+        r_star = (g[:, 22:38].unflatten(-1, (4, 4)) @ r.unsqueeze(-1)).squeeze(-1)
         s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
-        return mu_star, r_star, s_star, R, slot, w
+        return mu_star, r_star, s_star, frames, w, slot
 
     def _face_slot(self) -> torch.Tensor:
         """Index of every Gaussian's face in ``binding_faces`` [N]; computed (and checked, a host sync)
@@ -371,8 +376,7 @@ class Avatar(nn.Module):
     def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
         """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
         pose input; may be None only without a rectifier)."""
-        mu, r, s, frames, slot, w = self._posed(vertices)
-        frames = frames[slot]
+        mu, r, s, frames, w, slot = self._posed(vertices)
         offsets = None
         if self.rectifier is not None:
             if body_pose is None:
@@ -389,7 +393,7 @@ class Avatar(nn.Module):
             else:
                 d_mu, d_s, d_r = self.rectifier(mu, body_pose)
             mu = mu + d_mu
-            dq = d_r + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=d_r.dtype, device=d_r.device)
+            dq = d_r + quat_identity(d_r.dtype, d_r.device)
             dq = dq / torch.linalg.vector_norm(dq, dim=-1, keepdim=True).clamp_min(1e-12)
             r = quat_multiply(r, dq)
             s = (s + d_s).clamp_min(self.config.min_scale)

@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rmavatar.utils.device import constant
+
 POSE_DIM = 69
 OUT_DIM = 10  # d_mu 3, d_s 3, d_r 4
 
@@ -43,7 +45,7 @@ def positional_encoding(x: torch.Tensor, num_freqs: int, weights: torch.Tensor |
     x [N,3] -> [N, 6 * num_freqs], laid out as [sin (k, xyz) | cos (k, xyz)].
     ``weights`` [num_freqs] scales each band (the coarse-to-fine window).
     """
-    freqs = 2.0 ** torch.arange(num_freqs, dtype=x.dtype, device=x.device)
+    freqs = constant(tuple(2.0**k for k in range(num_freqs)), x.dtype, x.device)
     xb = (x.unsqueeze(-2) * freqs.unsqueeze(-1)).flatten(-2)  # [N, num_freqs*3]
     s, c = torch.sin(xb), torch.cos(xb)
     if weights is not None:
@@ -197,7 +199,7 @@ class Rectifier(nn.Module):
             self.l4.weight, self.l4.bias, self.l5.weight, self.l5.bias,
             self.compute_dtype if gamma.dtype == torch.float32 else gamma.dtype,
         )
-        return out[:, 0:3], out[:, 3:6], out[:, 6:10]
+        return out.split((3, 3, 4), dim=1)  # one backward operation (a cat), not three slice ones
 
     def reference_forward(
         self, x: torch.Tensor, body_pose: torch.Tensor, pose_masks: torch.Tensor | None = None,

@@ -11,6 +11,8 @@ overshoot 1 (SH colours are not clamped from above) passes ``check_range=False``
 
 from __future__ import annotations
 
+import functools
+
 from typing import Any
 
 import numpy as np
@@ -110,6 +112,12 @@ def gaussian_window_1d(sigma: float = SSIM_SIGMA, radius: int = SSIM_RADIUS, dty
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
+@functools.lru_cache(maxsize=16)
+def _ssim_window(dtype, device) -> torch.Tensor:
+    """SSIM's taps, made once per dtype and device (a training loss asks every step); read-only."""
+    return gaussian_window_1d(dtype=dtype, device=device)
+
+
 def ssim(a: Any, b: Any, *, check_range: bool = True):
     """Structural similarity with an 11x11 Gaussian window (sigma 1.5), K1 0.01, K2 0.03, data range 1.
 
@@ -126,7 +134,7 @@ def ssim(a: Any, b: Any, *, check_range: bool = True):
     # Filter the five moment maps in one grouped convolution: [B, 5*3, H, W].
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
     channels = stack.shape[1]
-    g = gaussian_window_1d(dtype=stack.dtype, device=stack.device)
+    g = _ssim_window(stack.dtype, stack.device)
     # 'valid' convolution: only windows that lie fully inside the image, the region the mean is over.
     filt = F.conv2d(stack, g.view(1, 1, win, 1).expand(channels, 1, win, 1), groups=channels)
     filt = F.conv2d(filt, g.view(1, 1, 1, win).expand(channels, 1, 1, win), groups=channels)

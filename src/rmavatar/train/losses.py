@@ -18,6 +18,7 @@ from typing import Any, Callable
 import torch
 
 from rmavatar.utils import UserError
+from rmavatar.utils.device import constant
 from rmavatar.utils.config import check_fields
 
 
@@ -105,7 +106,9 @@ def total_loss(
     if w["offset"] and getattr(gaussians, "offsets", None) is not None:
         terms["offset"] = offset_loss(*gaussians.offsets)
     key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}
-    loss = render.new_zeros(())
-    for name, value in terms.items():
-        loss = loss + w[key_weight[name]] * value
+    if not terms:
+        return render.new_zeros(()), {}
+    # One dot product instead of a multiply and an add per term (each a kernel launch on a GPU).
+    weight = constant(tuple(w[key_weight[name]] for name in terms), render.dtype, render.device)
+    loss = torch.stack(tuple(terms.values())) @ weight
     return loss, {k: v.detach() for k, v in terms.items()}

@@ -378,14 +378,14 @@ class Trainer:
         bg = background_color(cfg.background, self.bg_generator).to(self.device, non_blocking=True)
         target = self.target(i, bg)
         gs = self.avatar(self.vertices[i], self.body_pose[i])
-        # Checked on the device: the rasterizer culls non-finite Gaussians instead of refusing them.
-        ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh)
         image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
                                           background=bg, check=False)
         loss, parts = total_loss(image, target, gs, cfg.loss)
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
-        ok = ok & torch.isfinite(loss) & _finite_flag(*grads)
+        # Checked on the device, in one reduction: the Gaussians (the rasterizer culls non-finite ones
+        # instead of refusing them), the loss and every gradient.
+        ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
         self._optimizer_step(ok)
         self.optimizer.zero_grad(set_to_none=True)
         events = self.density.after_step(it, info, self.width, self.height, valid=ok)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 from rmavatar.utils.errors import UserError
 
 
@@ -18,3 +20,19 @@ def resolve_device(name: str):
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"device {name!r} asked for, but this torch has no CUDA device")
     return dev
+
+
+def constant(values, dtype, device):
+    """``torch.tensor(values, dtype=dtype, device=device)`` made once per (values, dtype, device) and
+    shared: steps that run thousands of times must not rebuild (or upload) their constants. ``values``
+    must be hashable (nested tuples of numbers). Never modify the returned tensor in place."""
+    import torch
+
+    return _constant(values, dtype, torch.device(device))
+
+
+@functools.lru_cache(maxsize=256)
+def _constant(values, dtype, device):
+    import torch
+
+    return torch.tensor(values, dtype=dtype, device=device)
