@@ -105,7 +105,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
 
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
-            gaussians: int | None, rectifier: bool, prepare=None) -> dict:
+            gaussians: int | None, rectifier: bool, prepare=None, refine_poses: bool = False) -> dict:
     """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
 
     ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
@@ -122,6 +122,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     cfg.data.size = size
     cfg.device = device
     cfg.model.rectifier = rectifier
+    if refine_poses:  # every timed step past the warm-up: the body posed with gradients
+        cfg.optim.refine_poses, cfg.optim.pose_warmup = True, 0.0
     if gaussians:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
     cfg.log.tensorboard = False
@@ -165,6 +167,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         "device": str(trainer.device),
         "threads": threads,
         "rectifier": rectifier,
+        "refine_poses": refine_poses,
         "step_median_s": step,
         "step_min_s": min(times),
         "step_max_s": max(times),
@@ -199,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
         if data is None:
             data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
-                      not args.no_rectifier)
+                      not args.no_rectifier, refine_poses=args.refine_poses)
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg())}
     print(f"training step at {res['size']}x{res['size']}, {res['gaussians']} Gaussians, {res['device']}, "

@@ -87,6 +87,8 @@ def _step_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda for the GPU path)")
     parser.add_argument("--no-rectifier", action="store_true", help="time the 'w/o GauRec' model")
+    parser.add_argument("--refine-poses", action="store_true",
+                        help="time steps with pose refinement (the body posed with gradients every step)")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
 
 
