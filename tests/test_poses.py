@@ -96,7 +96,7 @@ def test_pose_lr_schedule_is_frozen_then_decays():
     assert cfg.pose_lr_scale(60) == pytest.approx(math.sqrt(0.1))  # log-linear: halfway is the geometric mean
 
 
-def test_per_frame_adam_moves_only_the_trained_frame_by_about_the_lr():
+def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     from rmavatar.train.poses import PoseRefiner
 
     cfg = OptimConfig(iters=10, pose_warmup=0.0, lr_pose=0.01, lr_pose_transl=0.002, lr_pose_final_scale=1.0)
@@ -105,11 +105,17 @@ def test_per_frame_adam_moves_only_the_trained_frame_by_about_the_lr():
     grad[1] = torch.linspace(-1, 1, CORRECTION_DIM) + 0.01
     ref.delta.grad = grad.clone()
     ref.step(1, 1)
-    # Adam's first step is lr * sign(g) per coordinate; other frames (zero gradient) do not move.
-    expected = -torch.sign(grad[1]) * torch.cat((torch.full((72,), 0.01), torch.full((3,), 0.002)))
-    torch.testing.assert_close(ref.delta[1].detach(), expected, atol=1e-6, rtol=1e-4)
+    # One second moment per frame (the gradient's squared norm): the first step is lr * g / |g|, along
+    # the gradient (a coordinate with a small gradient moves little); other frames do not move.
+    lr = torch.cat((torch.full((72,), 0.01), torch.full((3,), 0.002)))
+    expected = -lr * grad[1] / grad[1].norm()
+    torch.testing.assert_close(ref.delta[1].detach(), expected, atol=1e-7, rtol=1e-4)
+    # With a constant gradient the bias-corrected moments are g and |g|^2: the same step again.
+    ref.delta.grad = grad.clone()
+    ref.step(1, 2)
+    torch.testing.assert_close(ref.delta[1].detach(), 2 * expected, atol=1e-7, rtol=1e-4)
     assert ref.delta[0].abs().sum() == 0 and ref.delta[2].abs().sum() == 0
-    assert ref.steps.tolist() == [0, 1, 0] and ref.delta.grad is None
+    assert ref.steps.tolist() == [0, 2, 0] and ref.delta.grad is None
     # A state dict restores exactly; a changed dataset pose is refused.
     other = PoseRefiner(_random_poses(3), None, cfg, torch.device("cpu"))
     other.load_state_dict(ref.state_dict(), "ckpt")

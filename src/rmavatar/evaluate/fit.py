@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
+from rmavatar.body.corrections import correction_adam_step
 from rmavatar.render.gaussians import render_gaussians
 from rmavatar.utils import UserError
 
@@ -30,8 +31,8 @@ class FitConfig:
 
     steps: int = 100
     batch: int = 8
-    lr_rotation: float = 5e-3
-    lr_translation: float = 1e-3
+    lr_rotation: float = 2e-2
+    lr_translation: float = 5e-4
     final_scale: float = 0.1
     silhouette: float = 1.0  # weight of the alpha-vs-mask term
 
@@ -85,10 +86,11 @@ def fit_poses(run, poses: PoseSequence, betas, frames: list, background: torch.T
 def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: FitConfig) -> PoseSequence:
     dev = background.device
     b = len(poses)
-    rot = torch.zeros(b, CORRECTION_DIM - 3, device=dev, requires_grad=True)
-    transl = torch.zeros(b, 3, device=dev, requires_grad=True)
-    opt = torch.optim.Adam([{"params": [rot], "lr": cfg.lr_rotation}, {"params": [transl], "lr": cfg.lr_translation}])
-    base_lr = [cfg.lr_rotation, cfg.lr_translation]
+    delta = torch.zeros(b, CORRECTION_DIM, device=dev, requires_grad=True)
+    exp_avg, exp_avg_sq = torch.zeros_like(delta), torch.zeros(b, device=dev)
+    counts = torch.zeros(b, dtype=torch.long, device=dev)
+    lr = torch.full((CORRECTION_DIM,), cfg.lr_rotation, device=dev)
+    lr[-3:] = cfg.lr_translation
     targets, masks = [], []
     for f in frames:
         m = torch.tensor(f.mask, dtype=torch.float32, device=dev)
@@ -97,9 +99,7 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
         masks.append(m[..., None])
     for step in range(cfg.steps):
         scale = 1.0 - (1.0 - cfg.final_scale) * step / max(cfg.steps - 1, 1)
-        for group, lr in zip(opt.param_groups, base_lr):
-            group["lr"] = lr * scale
-        fitted = apply_pose_corrections(poses, torch.cat((rot, transl), 1))
+        fitted = apply_pose_corrections(poses, delta)
         vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl).vertices.float()
         loss = 0.0
         for k, f in enumerate(frames):
@@ -107,9 +107,8 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
             cam = f.camera
             image, alpha, _ = render_gaussians(gs, cam.viewmat, cam.K, cam.width, cam.height, background=background)
             loss = loss + (image - targets[k]).abs().mean() + cfg.silhouette * (alpha - masks[k]).abs().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        (grad,) = torch.autograd.grad(loss, delta)
+        correction_adam_step(delta, grad, exp_avg, exp_avg_sq, counts, slice(0, b), lr * scale)
     with torch.no_grad():
-        fitted = apply_pose_corrections(poses, torch.cat((rot, transl), 1))
+        fitted = apply_pose_corrections(poses, delta)
     return fitted.to("cpu")

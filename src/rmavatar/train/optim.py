@@ -33,7 +33,7 @@ class OptimConfig:
     # Pose refinement (docs/train.md): per-frame corrections of the training poses. None = auto: on when
     # the dataset says its poses are estimated (rmavatar capture), off otherwise (the paper's protocol).
     refine_poses: bool | None = None
-    lr_pose: float = 5e-3  # joint rotation corrections, radians per Adam step
+    lr_pose: float = 2e-2  # a frame's rotation corrections move at most this far (radians) per step
     lr_pose_transl: float = 5e-4  # translation corrections, metres per Adam step
     lr_pose_final_scale: float = 0.1  # both decay log-linearly to this fraction at the last iteration
     pose_warmup: float = 0.1  # fraction of the run with frozen corrections (the avatar takes shape first)

@@ -18,10 +18,9 @@ import numpy as np
 import torch
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
+from rmavatar.body.corrections import correction_adam_step
 from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError, atomic_path
-
-BETA1, BETA2, EPS = 0.9, 0.999, 1e-8
 
 
 class PoseRefiner:
@@ -35,7 +34,7 @@ class PoseRefiner:
         n = len(base)
         self.delta = torch.zeros(n, CORRECTION_DIM, device=device, requires_grad=True)
         self.exp_avg = torch.zeros(n, CORRECTION_DIM, device=device)
-        self.exp_avg_sq = torch.zeros(n, CORRECTION_DIM, device=device)
+        self.exp_avg_sq = torch.zeros(n, device=device)
         self.steps = torch.zeros(n, dtype=torch.long, device=device)
         lr = torch.full((CORRECTION_DIM,), cfg.lr_pose, dtype=torch.float32)
         lr[-3:] = cfg.lr_pose_transl
@@ -70,15 +69,8 @@ class PoseRefiner:
         self.delta.grad = None
         if grad is None:
             return
-        g = grad[i]
-        self.steps[i] += 1
-        t = self.steps[i].to(torch.float32)
-        self.exp_avg[i] = BETA1 * self.exp_avg[i] + (1 - BETA1) * g
-        self.exp_avg_sq[i] = BETA2 * self.exp_avg_sq[i] + (1 - BETA2) * g * g
-        m_hat = self.exp_avg[i] / (1 - BETA1**t)
-        v_hat = self.exp_avg_sq[i] / (1 - BETA2**t)
         lr = self.lr * self.cfg.pose_lr_scale(iteration - 1)
-        self.delta[i] -= lr * m_hat / (v_hat.sqrt() + EPS)
+        correction_adam_step(self.delta, grad[i : i + 1], self.exp_avg, self.exp_avg_sq, self.steps, slice(i, i + 1), lr)
 
     @torch.no_grad()
     def poses(self) -> PoseSequence:
