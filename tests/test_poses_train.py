@@ -34,7 +34,6 @@ def _cfg(data, iters):
     cfg.optim.iters = iters
     cfg.optim.refine_poses = True
     cfg.optim.pose_warmup = 0.0  # refine from the first step, so a short run exercises it
-    cfg.optim.lr_pose = 0.02
     cfg.threads = 1
     cfg.log.tensorboard = False
     cfg.log.preview_every = 10**6
@@ -76,6 +75,25 @@ def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypat
 
     with pytest.raises(UserError, match="refine_poses"):
         train(None, tmp_path / "whole", resume=True, overrides=[(False, "optim", "refine_poses")], progress=False)
+
+
+def test_refinement_reduces_the_pose_error(noisy, tmp_path):
+    """The images show the true poses, the dataset holds them with 10 degrees of noise per axis: the
+    refined training poses are closer to the true ones than the given ones, the global orientation too,
+    and no joint gets more than a degree worse. (Measured: 16.40 -> 16.35 degrees, global 18.10 -> 17.51:
+    a small gain; see docs/train.md for what limits it.)"""
+    import json
+
+    cfg = _cfg(noisy, 60)
+    cfg.optim.pose_warmup = 0.25
+    train(cfg, tmp_path / "run", progress=False)
+    err = json.loads((tmp_path / "run" / "pose_error.json").read_text())
+    given, refined = err["given"], err["refined"]
+    print("pose error given / refined:", given["joint_angle_deg"], refined["joint_angle_deg"],
+          "global:", given["per_joint_deg"][0], refined["per_joint_deg"][0], "transl mm:", refined["transl_mm"])
+    assert refined["joint_angle_deg"] < given["joint_angle_deg"]
+    assert refined["per_joint_deg"][0] < given["per_joint_deg"][0]
+    assert max(r - g for r, g in zip(refined["per_joint_deg"], given["per_joint_deg"])) < 1.0
 
 
 def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_path):
