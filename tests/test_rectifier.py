@@ -261,5 +261,5 @@ def test_checkpoints_without_a_design_read_as_paper(tmp_path):
                "config": {"model": {"rectifier": False}}}
     torch.save(payload, tmp_path / "last.pt")
     got = read_checkpoint(tmp_path / "last.pt")
-    assert got["version"] == 3 and got["avatar"]["config"]["rectifier"] == "paper"
+    assert got["version"] == 4 and got["avatar"]["config"]["rectifier"] == "paper" and got["poses"] is None
     assert got["config"]["model"]["rectifier"] is False

@@ -43,11 +43,12 @@ def test_a_v1_checkpoint_is_migrated(run_v1):
     raw = torch.load(checkpoint_path(run_v1), map_location="cpu", weights_only=True)
     assert raw["version"] == 1 and "seed" in raw["avatar"]["config"] and "betas" not in raw
     payload = read_checkpoint(checkpoint_path(run_v1))
-    assert payload["version"] == CHECKPOINT_VERSION == 3
+    assert payload["version"] == CHECKPOINT_VERSION == 4
     assert "seed" not in payload["avatar"]["config"] and payload["betas"] is None
     # v2 -> v3: the on/off rectifier switch became the design's name
     assert raw["avatar"]["config"]["rectifier"] is True and raw["config"]["model"]["rectifier"] is True
     assert payload["avatar"]["config"]["rectifier"] == payload["config"]["model"]["rectifier"] == "paper"
+    assert payload["poses"] is None  # v3 -> v4: trained without pose refinement
     # everything else is carried over untouched
     assert payload["iteration"] == raw["iteration"] == 1
     for name, t in raw["avatar"]["state_dict"].items():
@@ -60,6 +61,7 @@ def test_a_v1_run_renders_the_same_image(run_v1, device):
     expected = np.load(FIXTURE / "expected.npz")
     trained = load_trained(run_v1, device=device)
     assert trained.iteration == 1 and trained.size == 48 and trained.betas is None
+    assert trained.training_poses is None
     assert trained.avatar.config.sh_degree == 0 and trained.avatar.rectifier is not None
     poses = PoseSequence.from_arrays(expected["global_orient"], expected["body_pose"], expected["transl"])
     with torch.no_grad():

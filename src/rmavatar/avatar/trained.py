@@ -5,12 +5,15 @@ A run folder holds::
     RUN/rmavatar-run.json        marker: this folder is an rmavatar run, and of which dataset
     RUN/config.yaml              the full training config (accepted back with --config)
     RUN/checkpoints/last.pt      the latest checkpoint (torch.save of plain containers and tensors)
+    RUN/poses.npz                the refined training poses (runs with pose refinement)
+    RUN/pose_error.json          the training poses' error vs the true ones (synthetic subjects)
     RUN/previews/*.png           render | target previews
     RUN/tb/                      TensorBoard event files
 
 A checkpoint stores the training config, the iteration, the body model's spec and a signature of its
 topology, the body shape it was trained with, the avatar's state (Gaussian count and parent faces
-included) and what resuming needs (optimiser, density statistics, frame sampler, RNG states). Its
+included), the pose corrections of runs that refine their training poses (with the poses they correct)
+and what resuming needs (optimiser, density statistics, frame sampler, RNG states). Its
 format is versioned: older checkpoints are migrated when read (:func:`read_checkpoint`).
 
 Everything that uses a trained avatar (eval, animate, render, export, view, bench, the demo) goes through
@@ -30,7 +33,7 @@ import numpy as np
 import torch
 
 from rmavatar.avatar.model import Avatar
-from rmavatar.body import PoseSequence, load_body_model, posed_vertices, rest_pose
+from rmavatar.body import PoseSequence, apply_pose_corrections, load_body_model, posed_vertices, rest_pose
 from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.utils import UserError
 from rmavatar.utils.errors import load_error
@@ -39,7 +42,8 @@ MARKER = "rmavatar-run.json"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # 2: TrainConfig.model is the avatar's own config (AvatarConfig, without its seed); the body shape is stored.
 # 3: model.rectifier names the rectifier's design ("paper", "local") or is false (none).
-CHECKPOINT_VERSION = 3
+# 4: "poses": the training poses' corrections (rmavatar.train.poses.PoseRefiner.state_dict) or None.
+CHECKPOINT_VERSION = 4
 
 
 def checkpoint_path(run_dir: str | os.PathLike) -> Path:
@@ -83,7 +87,12 @@ def _migrate_v2(payload: dict) -> dict:
     return {**payload, "avatar": avatar, "config": config, "version": 3}
 
 
-_MIGRATIONS = {1: _migrate_v1, 2: _migrate_v2}
+def _migrate_v3(payload: dict) -> dict:
+    """Version 3: no pose refinement existed; the training poses were the dataset's."""
+    return {**payload, "poses": None, "version": 4}
+
+
+_MIGRATIONS = {1: _migrate_v1, 2: _migrate_v2, 3: _migrate_v3}
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:
@@ -145,7 +154,9 @@ class TrainedAvatar:
     avatar: the :class:`Avatar` (``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``); body: the
     BodyModel; betas [1,nb] the body shape it was trained with (None: the body's own shape);
     iteration: training iterations done; data_spec: the dataset it was trained on; size: the image size
-    it was trained at (None: the dataset's own); config: the training config as plain dicts.
+    it was trained at (None: the dataset's own); config: the training config as plain dicts;
+    training_poses: the refined poses of the training frames (a PoseSequence in the order of the
+    training split) when the run refined them, else None.
     """
 
     avatar: Avatar
@@ -156,6 +167,11 @@ class TrainedAvatar:
     size: int | None
     config: dict
     betas_error: str | None = None  # why the shape could not be read (raised when posing needs it)
+    training_poses: PoseSequence | None = None
+
+    @property
+    def training_split(self) -> str:
+        return str(self.config.get("data", {}).get("split", "train"))
 
     @property
     def device(self) -> torch.device:
@@ -163,9 +179,13 @@ class TrainedAvatar:
 
     def rest_pose(self, kind: str = "tpose") -> PoseSequence:
         """A one-frame standing pose at the origin: 'tpose' (zero pose), 'apose' (arms down 45 degrees)
-        or 'train' (the median body pose of the training frames, facing +z)."""
+        or 'train' (the median body pose of the training frames, refined where the run refined them,
+        facing +z)."""
         if kind != "train":
             return rest_pose(kind)
+        if self.training_poses is not None:
+            median = torch.median(self.training_poses.body_pose.cpu(), dim=0).values
+            return PoseSequence(torch.zeros(1, 3), median[None], torch.zeros(1, 3))
         from rmavatar.data import load_dataset
 
         try:
@@ -236,9 +256,14 @@ def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu")
             betas = training_betas(load_dataset(spec).params("train"))
         except UserError as exc:
             betas_error = f"the run's body shape comes from its training data {spec!r}, which cannot be read: {exc}"
+    training_poses = None
+    if payload["poses"] is not None:
+        base = payload["poses"]["base"]
+        training_poses = apply_pose_corrections(
+            PoseSequence(base["global_orient"], base["body_pose"], base["transl"]), payload["poses"]["delta"])
     return TrainedAvatar(
         avatar=avatar.to(device), body=body.to(device),
         betas=None if betas is None else torch.as_tensor(betas, dtype=torch.float32).to(device),
         iteration=int(payload["iteration"]), data_spec=str(payload["data_spec"]),
-        size=config["data"]["size"], config=config, betas_error=betas_error,
+        size=config["data"]["size"], config=config, betas_error=betas_error, training_poses=training_poses,
     )

@@ -127,7 +127,8 @@ def device_info(device) -> dict:
 
 
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
-            gaussians: int | None, rectifier: bool, prepare=None, count_steps: int = 20) -> dict:
+            gaussians: int | None, rectifier: bool, prepare=None, count_steps: int = 20,
+            refine_poses: bool = False) -> dict:
     """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
 
     ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
@@ -145,6 +146,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     cfg.data.size = size
     cfg.device = device
     cfg.model.rectifier = rectifier
+    if refine_poses:  # every timed step past the warm-up: the body posed with gradients
+        cfg.optim.refine_poses, cfg.optim.pose_warmup = True, 0.0
     if gaussians:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
     cfg.log.tensorboard = False
@@ -192,6 +195,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         **device_info(trainer.device),
         "threads": threads,
         "rectifier": rectifier,
+        "refine_poses": refine_poses,
         "step_median_s": step,
         "step_min_s": min(times),
         "step_max_s": max(times),
@@ -227,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
         if data is None:
             data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
-                      not args.no_rectifier, count_steps=args.count_steps)
+                      not args.no_rectifier, count_steps=args.count_steps, refine_poses=args.refine_poses)
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg())}
     gpu = f" ({res['gpu']})" if "gpu" in res else ""

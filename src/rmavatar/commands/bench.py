@@ -111,6 +111,8 @@ def _step_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--count-steps", type=int, default=20,
                         help="further steps run under an operation counter: tensor operations and host syncs "
                              "per step (default 20; 0 = skip)")
+    parser.add_argument("--refine-poses", action="store_true",
+                        help="time steps with pose refinement (the body posed with gradients every step)")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
 
 

@@ -12,13 +12,17 @@ DESCRIPTION = """\
 Render every frame of a dataset split with a trained avatar and score it against the ground truth:
 PSNR (20 log10(1/RMSE) per image), SSIM (11x11 Gaussian window, sigma 1.5) and LPIPS (AlexNet v0.1,
 inputs in [-1, 1]) over full images, per frame and averaged. The JSON holds the per-frame rows, the
-means and the protocol (background, resolution, split, iteration, no pose refinement). Side-by-side
-images (render | ground truth | error heat map) go to --images.
+means and the protocol (background, resolution, split, iteration, poses used). Side-by-side images
+(render | ground truth | error heat map) go to --images. A run that refined its training poses is scored
+on its own training split with the refined poses. --fit-poses first fits each evaluated frame's pose
+to its image and mask with the avatar frozen (the protocol InstantAvatar and GART report PeopleSnapshot
+with); the checkpoint is never changed.
 
 examples:
   rmavatar eval runs/female-3 --json eval_test.json
   rmavatar eval runs/female-3 --split novel_pose --bg black --size 540 --json eval_np.json
   rmavatar eval runs/female-3 --data peoplesnapshot:data/female-3-casual --json e.json --no-images
+  rmavatar eval runs/female-3 --fit-poses --json eval_test_fit.json        # 100 fitting steps per frame
 """
 
 
@@ -40,6 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for side-by-side images (default: OUT without .json, plus _images)")
     parser.add_argument("--no-images", action="store_true", help="do not write comparison images")
     parser.add_argument("--frames", type=int, metavar="N", help="evaluate only the first N frames of the split")
+    parser.add_argument("--fit-poses", type=int, nargs="?", const=100, default=None, metavar="STEPS",
+                        help="fit every evaluated frame's pose (joint rotations and translation) to its image "
+                             "and mask before scoring, STEPS Adam steps (default 100); off unless given")
+    parser.add_argument("--fit-batch", type=int, default=8, metavar="B",
+                        help="frames fitted together with --fit-poses (default 8; lower it if memory runs out)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite_argument(parser)
@@ -64,9 +73,14 @@ def run(args: argparse.Namespace) -> int:
     if images is not None:
         check_images_dir(images, args.overwrite)
 
+    fit = None
+    if args.fit_poses is not None:
+        from rmavatar.evaluate.fit import FitConfig
+
+        fit = FitConfig(steps=args.fit_poses, batch=args.fit_batch).validate()
     result = evaluate_run(
         args.run, data=args.data, split=args.split, bg=args.bg, size=args.size, out_dir=images,
-        device=args.device, max_frames=args.frames, progress=not args.quiet, overwrite=args.overwrite,
+        device=args.device, max_frames=args.frames, progress=not args.quiet, overwrite=args.overwrite, fit=fit,
     )
     write_json(out, result, overwrite=args.overwrite)
 
@@ -76,5 +90,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{p['split']}: {p['frames']} frames at {p['resolution'][0]}x{p['resolution'][1]}, {p['background']} "
           f"background, iteration {p['iteration']}")
     print(f"PSNR {psnr} dB   SSIM {m['ssim']:.4f}   LPIPS {m['lpips']:.4f}")
+    if "pose_error" in result:
+        e = result["pose_error"]
+        print(f"pose error vs the true poses (mean per-joint angle): dataset {e['given']['joint_angle_deg']:.2f} deg, "
+              f"used {e['used']['joint_angle_deg']:.2f} deg ({p['poses']} poses)")
     print(f"wrote {out}" + (f" and images in {images}" if images is not None else ""))
     return 0

@@ -12,11 +12,13 @@ EPILOG = """examples:
   rmavatar train peoplesnapshot:data/male-3-casual --out runs/m3c --body smpl:models/smpl --size 540
   rmavatar train data/subject --out runs/norect --no-rectifier       # the paper's "w/o GauRec" ablation
   rmavatar train data/subject --out runs/again --config runs/subject/config.yaml
+  rmavatar train data/captured --out runs/cap --no-refine-poses      # keep the tracker's poses as they are
 
 Every run folder gets config.yaml (edit it and pass it back with --config), checkpoints/last.pt
 (written every log.checkpoint_every iterations, at the end and on Ctrl-C), previews/*.png (render |
-target) and tb/ (TensorBoard: tensorboard --logdir RUN/tb). Command-line options override the
-config file."""
+target) and tb/ (TensorBoard: tensorboard --logdir RUN/tb); runs that refine their poses also get
+poses.npz, and subjects from rmavatar synth pose_error.json. Command-line options override the config
+file."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-rectifier", action="store_true", help="ablation: no Gaussian rectification MLP")
     parser.add_argument("--no-offset-loss", action="store_true", help="ablation: offset regulariser weight 0")
     parser.add_argument("--no-scaling-loss", action="store_true", help="ablation: scaling regulariser weight 0")
+    parser.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                        help="learn per-frame corrections of the training poses (default: on when the dataset's "
+                             "poses are estimated, as rmavatar capture's are; off otherwise)")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
     parser.add_argument("--checkpoint-every", type=int, metavar="K", help="checkpoint interval in iterations")
@@ -63,6 +68,8 @@ def _overrides(args: argparse.Namespace) -> list[tuple[object, str | None, str]]
         value = getattr(args, attr, None)
         if value is not None:
             out.append((value, section, key))
+    if getattr(args, "refine_poses", None) is not None:
+        out.append((args.refine_poses, "optim", "refine_poses"))
     if getattr(args, "no_rectifier", False):
         out.append((False, "model", "rectifier"))
     if getattr(args, "no_offset_loss", False):

@@ -2,8 +2,9 @@
 
 Protocol (written into the result): full images (not masked); the ground truth is the frame composited
 over the chosen background with its mask (as in training); the render uses the same background and is
-clamped to [0, 1]; the dataset's own poses are used (no test-time pose refinement); PSNR, SSIM and LPIPS
-as defined in :mod:`rmavatar.evaluate.metrics`, computed per frame and then averaged.
+clamped to [0, 1]; the dataset's own poses are used (the run's refined ones on its own training frames),
+unless ``fit`` asks for test-time pose fitting (:mod:`rmavatar.evaluate.fit`); PSNR, SSIM and LPIPS as
+defined in :mod:`rmavatar.evaluate.metrics`, computed per frame and then averaged.
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ def evaluate_run(
     max_frames: int | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    fit=None,
 ) -> dict[str, Any]:
     """Render every frame of ``split`` with the run's avatar and score it against the ground truth.
 
@@ -82,18 +84,21 @@ def evaluate_run(
     at; None there means the dataset's own); device: "auto" (CUDA when available), "cpu", "cuda[:N]";
     out_dir: where to write side-by-side images (render | ground truth | error heat map) and a copy of
     the result (``metrics.json``), or None for no images; replaced atomically, and only if it is empty
-    or an earlier evaluation's (``overwrite``: see
-    :mod:`rmavatar.utils.outputs`); max_frames: evaluate only the first N frames of the split.
+    or an earlier evaluation's (``overwrite``: see :mod:`rmavatar.utils.outputs`); max_frames: evaluate only
+    the first N frames of the split; fit: a :class:`rmavatar.evaluate.fit.FitConfig` to fit every frame's pose
+    to its image before scoring (the avatar and its checkpoint stay untouched), or None.
 
     Returns {"protocol": {...}, "frames": [{"position", "index", "psnr", "ssim", "lpips"}, ...],
-    "mean": {"psnr", "ssim", "lpips"}}. A PSNR of infinity (a pixel-exact render) is None.
+    "mean": {"psnr", "ssim", "lpips"}}, and for a synthetic subject with true poses "pose_error" (the
+    used poses' error, see :func:`rmavatar.body.pose_error`). A PSNR of infinity is None.
     """
     from PIL import Image
     from tqdm import tqdm
 
     from rmavatar.avatar.trained import load_trained
-    from rmavatar.body import PoseSequence, posed_vertices
+    from rmavatar.body import PoseSequence, pose_error, posed_vertices
     from rmavatar.data import load_dataset
+    from rmavatar.data.synth import true_poses
     from rmavatar.evaluate.metrics import lpips, psnr, ssim
 
     if bg not in BACKGROUNDS:
@@ -115,11 +120,28 @@ def evaluate_run(
     total = dataset.num_frames(split)  # a UserError naming the splits there are when missing
     n = total if max_frames is None else min(total, max_frames)
     params = dataset.params(split)
-    poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    poses, pose_source = given, "the dataset's"
+    if run.training_poses is not None and split == run.training_split and spec == run.data_spec:
+        poses, pose_source = run.training_poses, "refined in training"
     width, height = dataset.image_size
     if min(width, height) < 32:
         raise UserError(f"images of {width}x{height} are too small to score (LPIPS needs 32x32); pass a larger size")
     background = torch.tensor(BACKGROUNDS[bg], dtype=torch.float32, device=dev)
+    poses = poses.select(slice(0, n))
+    if fit is not None:
+        from rmavatar.evaluate.fit import fit_poses
+
+        if progress:
+            print(f"fitting the poses of {n} frames ({fit.steps} steps, {fit.batch} frames at a time) ...", flush=True)
+        frames = [dataset.frame(split, i) for i in range(n)]
+        poses = fit_poses(run, poses, params["betas"][:n] if run.body.num_betas > 0 else None, frames, background, fit)
+        pose_source += ", then fitted to each test image"
+    truth = true_poses(dataset, split)
+    errors = None
+    if truth is not None:
+        truth = truth.select(slice(0, n))
+        errors = {"given": pose_error(given.select(slice(0, n)), truth), "used": pose_error(poses, truth)}
 
     rows: list[dict[str, Any]] = []
     bar = tqdm(range(n), desc=f"eval {split}", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -167,7 +189,10 @@ def evaluate_run(
                 "image_region": "full image (not masked); ground truth = frame composited over the background "
                                 "with its mask",
                 "render_clamped": True,
-                "pose_refinement": False,
+                "pose_refinement": fit is not None,
+                "fit_poses": fit.steps if fit is not None else None,
+                "fit_poses_settings": fit.protocol() if fit is not None else None,
+                "poses": pose_source,
                 "psnr": "20 log10(1 / RMSE) per image (peak 1), then averaged over frames",
                 "ssim": "11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, data range 1, mean over the valid "
                         "region and RGB; per image, then averaged",
@@ -178,6 +203,8 @@ def evaluate_run(
             "frames": [{**r, "psnr": _finite_or_none(r["psnr"])} for r in rows],
             "mean": {**mean, "psnr": _finite_or_none(mean["psnr"])},
         }
+        if errors is not None:
+            result["pose_error"] = errors
         if tmp_dir is not None:
             (tmp_dir / IMAGES_MARKER).write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
     return result

@@ -31,6 +31,13 @@ class OptimConfig:
     sh_rest_divisor: float = 20.0
     lr_rectifier: float = 1e-4
     adam_eps: float = 1e-15
+    # Pose refinement (docs/train.md): per-frame corrections of the training poses. None = auto: on when
+    # the dataset says its poses are estimated (rmavatar capture), off otherwise (the paper's protocol).
+    refine_poses: bool | None = None
+    lr_pose: float = 2e-2  # a frame's rotation corrections move at most this far (radians) per step
+    lr_pose_transl: float = 5e-4  # translation corrections, metres per Adam step
+    lr_pose_final_scale: float = 0.1  # both decay log-linearly to this fraction at the last iteration
+    pose_warmup: float = 0.1  # fraction of the run with frozen corrections (the avatar takes shape first)
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
@@ -39,7 +46,29 @@ class OptimConfig:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
             raise UserError("optim.lr_position and optim.lr_position_final must be > 0")
+        if self.lr_pose < 0 or self.lr_pose_transl < 0:
+            raise UserError("optim.lr_pose and optim.lr_pose_transl must be >= 0")
+        if not 0 < self.lr_pose_final_scale <= 1:
+            raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
+        if not 0 <= self.pose_warmup < 1:
+            raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
         return self
+
+    def refines_poses(self, poses_estimated: bool) -> bool:
+        """Whether this run refines its training poses, for a dataset whose poses are (not) estimated."""
+        return bool(poses_estimated) if self.refine_poses is None else self.refine_poses
+
+    def pose_warmup_steps(self) -> int:
+        """Steps with frozen pose corrections; refinement starts at step ``pose_warmup_steps() + 1``."""
+        return round(self.pose_warmup * self.iters)
+
+    def pose_lr_scale(self, iteration: int) -> float:
+        """The pose corrections' lr factor before step ``iteration + 1``: 0 during the warm-up, then a
+        log-linear decay from 1 to ``lr_pose_final_scale`` at the last iteration."""
+        start = self.pose_warmup_steps()
+        if iteration < start:
+            return 0.0
+        return position_lr(iteration - start, self.iters - start, 1.0, self.lr_pose_final_scale)
 
     def build(self, avatar) -> torch.optim.Adam:
         """Adam over named parameter groups (eps ``adam_eps``).

@@ -5,8 +5,9 @@ paper's (run-length-scaled) schedule, atomic checkpoints, exact resume, Ctrl-C a
 (benchmarks, tests): ``setup()``, then ``step()`` as often as wanted, ``target(i, bg)`` for a frame's
 ground truth, ``save()``.
 
-The posed body of every training frame never changes during training (no pose refinement), so all
-of them are computed once, up front, in batches; a step then only runs avatar -> rasterizer -> losses.
+The posed body of every training frame is computed once, up front, in batches; a step then only runs
+avatar -> rasterizer -> losses. With pose refinement (``optim.refine_poses``, :mod:`rmavatar.train.poses`)
+a step past its warm-up poses its frame's corrected body instead, through :meth:`Trainer.frame_body`.
 """
 
 from __future__ import annotations
@@ -304,6 +305,7 @@ class Trainer:
         self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32, device=dev)
         self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32, device=dev)
         self.width, self.height = cams[0].width, cams[0].height
+        self._setup_poses(params, poses)
 
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed % 2**32)
@@ -326,6 +328,7 @@ class Trainer:
             self.density.load_state_dict(self.ckpt["density"])
             self.sampler.load_state_dict(self.ckpt["sampler"])
             restore_rng(self.ckpt["rng"], self.bg_generator)
+            self._resume_poses(self.ckpt["poses"])
             self.iteration = int(self.ckpt["iteration"])
             print(f"resuming {self.run_dir} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
         self.ckpt = None  # free the loaded tensors
@@ -353,8 +356,10 @@ class Trainer:
             "density": self.density.state_dict(),
             "sampler": self.sampler.state_dict(),
             "rng": capture_rng(self.bg_generator),
+            "poses": None if self.poses is None else self.poses.state_dict(),
             "saved_at": time.time(),
         })
+        self._write_pose_files()
 
     # --- one step ---------------------------------------------------------------------------------
     def step(self) -> dict:
@@ -377,17 +382,21 @@ class Trainer:
         i = self.sampler.next()
         bg = background_color(cfg.background, self.bg_generator).to(self.device, non_blocking=True)
         target = self.target(i, bg)
-        gs = self.avatar(self.vertices[i], self.body_pose[i])
+        gs = self.avatar(*self.frame_body(i, it))
         image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
                                           background=bg, check=False)
         loss, parts = total_loss(image, target, gs, cfg.loss)
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
+        if self.poses is not None and self.poses.delta.grad is not None:
+            grads.append(self.poses.delta.grad)
         # Checked on the device, in one reduction: the Gaussians (the rasterizer culls non-finite ones
         # instead of refusing them), the loss and every gradient.
         ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
         self._optimizer_step(ok)
         self.optimizer.zero_grad(set_to_none=True)
+        if self.poses is not None:
+            self.poses.step(i, it, ok)
         events = self.density.after_step(it, info, self.width, self.height, valid=ok)
         self._guard.update(ok)
         return {"ok": ok, "loss": loss.detach(), **parts, "frame": i, "lr_position": lr, "events": events,
@@ -447,7 +456,69 @@ class Trainer:
             last = f", last training PSNR {history[-1]['psnr']:.2f} dB" if history else ""
             print(f"done: {done} iterations in {seconds:.0f} s ({done / max(seconds, 1e-9):.2f} it/s), "
                   f"{self.avatar.num_gaussians} Gaussians{last}; checkpoint {checkpoint_path(self.run_dir)}")
+            if self.pose_error is not None:
+                e = self.pose_error
+                refined = "" if e["refined"] is None else f", refined {e['refined']['joint_angle_deg']:.2f}"
+                print(f"training pose error vs the true poses (mean per-joint angle, deg): given "
+                      f"{e['given']['joint_angle_deg']:.2f}{refined} -> {self.run_dir / 'pose_error.json'}")
         return TrainResult(self.iteration, interrupted, self.run_dir, history)
+
+    # --- pose refinement --------------------------------------------------------------------------
+    def _setup_poses(self, params: dict, poses: PoseSequence) -> None:
+        """``poses``: a PoseRefiner of the training frames, or None without pose refinement (auto: on for
+        datasets with estimated poses); ``true_poses``: the noise-free poses of a synthetic subject."""
+        from rmavatar.data.synth import true_poses
+        from rmavatar.train.poses import PoseRefiner
+
+        self.pose_index = params["index"]
+        self.poses = None
+        if self.cfg.optim.refines_poses(self.dataset.poses_estimated):
+            betas = params["betas"] if self.body.num_betas > 0 else None
+            self.poses = PoseRefiner(poses, betas, self.cfg.optim, self.device)
+        self.true_poses = true_poses(self.dataset, self.cfg.data.split)
+        self.pose_error = None
+
+    def _resume_poses(self, state: dict | None) -> None:
+        where = str(checkpoint_path(self.run_dir))
+        if (state is None) != (self.poses is None):
+            now = "refines" if self.poses is not None else "does not refine"
+            raise UserError(f"{where}: the run was trained {'without' if state is None else 'with'} pose "
+                            f"refinement, but its config now {now} the poses (did the dataset's meta.yaml "
+                            f"'poses:' change?); start a new run")
+        if state is not None:
+            self.poses.load_state_dict(state, where)
+
+    def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed vertices [V,3] and body_pose [69] of training frame ``i`` at step ``iteration``: the
+        cached ones, or with pose refinement past its warm-up the corrected pose through the body."""
+        if self.poses is None or not self.poses.active(iteration):
+            return self.vertices[i], self.body_pose[i]
+        return self.poses.posed(self.body, i)
+
+    def _write_pose_files(self) -> None:
+        """RUN/poses.npz (the refined training poses) and, for a subject with true poses,
+        RUN/pose_error.json (the given and the refined poses' errors); both atomic."""
+        import json
+
+        from rmavatar.body import pose_error
+        from rmavatar.train.poses import write_poses
+
+        refined = None if self.poses is None else self.poses.poses()
+        if refined is not None:
+            write_poses(self.run_dir / "poses.npz", refined, self.pose_index, self.cfg.data.split)
+        if self.true_poses is None:
+            return
+        params = self.dataset.params(self.cfg.data.split)
+        given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+        self.pose_error = {
+            "iteration": self.iteration, "split": self.cfg.data.split,
+            "measure": "mean over frames and the 24 joints (global orientation + 23 body joints) of the "
+                       "geodesic angle to the true rotation; translation: mean distance",
+            "given": pose_error(given, self.true_poses),
+            "refined": None if refined is None else pose_error(refined, self.true_poses),
+        }  # fmt: skip
+        with atomic_path(self.run_dir / "pose_error.json") as tmp:
+            tmp.write_text(json.dumps(self.pose_error, indent=2) + "\n")
 
     def _report(self, out: dict, writer, history: list, bar) -> None:
         """Progress, TensorBoard and previews. The step's tensors are read (one host sync for all of

@@ -180,6 +180,23 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwri
     return {"frames": {k: len(v) for k, v in splits.items()}, "seconds": time.time() - start, "out": str(out)}
 
 
+def true_poses(dataset, split: str):
+    """The noise-free poses (a PoseSequence) of ``split`` of a synthetic subject written with
+    ``smpl_true.npz`` beside its stored (possibly noisy) poses; None for any other dataset."""
+    from rmavatar.body import PoseSequence
+
+    path = Path(dataset.root) / "smpl_true.npz"
+    if not path.is_file():
+        return None
+    index = dataset.params(split)["index"]
+    try:
+        with np.load(path) as data:
+            rows = {k: data[k][index] for k in ("global_orient", "body_pose", "transl")}
+    except (OSError, ValueError, KeyError, IndexError) as exc:
+        raise UserError(f"{path} does not hold the true poses of {dataset.root}'s frames: {exc}") from None
+    return PoseSequence.from_arrays(rows["global_orient"], rows["body_pose"], rows["transl"])
+
+
 def splits_of(i: int, shots: list[Shot]) -> str:
     return f"{shots[i].split} {i}"
 

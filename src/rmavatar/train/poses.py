@@ -1,0 +1,121 @@
+"""Pose refinement while training: learnable per-frame corrections of the training poses.
+
+Every training frame gets a correction [75] (24 joint rotations composed on the left, a translation; see
+:mod:`rmavatar.body.corrections`), zero at the start. A step poses the body with its frame's corrected
+pose, so the mesh, the Gaussians on it and the rectifier's pose input all see it, and the image loss
+reaches the correction through the body model.
+
+The corrections have their own Adam, kept per frame: a frame's moments and step count change only on
+the steps that train that frame. A shared dense Adam would keep moving every frame visited before on
+stale momentum; ``torch.optim.SparseAdam`` bias-corrects with the global step count, so a frame's first
+update would be a fraction of the intended size. Learning rates and their schedule (frozen during a
+warm-up, then a log-linear decay) are in :class:`rmavatar.train.optim.OptimConfig`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
+from rmavatar.body.corrections import correction_adam_step
+from rmavatar.train.optim import OptimConfig
+from rmavatar.utils import UserError, atomic_path
+
+
+class PoseRefiner:
+    """Corrections ``delta`` [n,75] of ``base`` (the dataset's poses of the n training frames) with
+    per-frame Adam state; ``betas`` [n,nb] or None is each frame's body shape."""
+
+    def __init__(self, base: PoseSequence, betas: torch.Tensor | None, cfg: OptimConfig, device: torch.device):
+        self.cfg = cfg
+        self.base = base.to(device)
+        self.betas = None if betas is None else torch.as_tensor(betas, dtype=torch.float32).to(device)
+        n = len(base)
+        self.delta = torch.zeros(n, CORRECTION_DIM, device=device, requires_grad=True)
+        self.exp_avg = torch.zeros(n, CORRECTION_DIM, device=device)
+        self.exp_avg_sq = torch.zeros(n, device=device)
+        self.steps = torch.zeros(n, dtype=torch.long, device=device)
+        lr = torch.full((CORRECTION_DIM,), cfg.lr_pose, dtype=torch.float32)
+        lr[-3:] = cfg.lr_pose_transl
+        self.lr = lr.to(device)
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def active(self, iteration: int) -> bool:
+        """Whether step ``iteration`` (1-based) trains the corrections (after the frozen warm-up)."""
+        return iteration > self.cfg.pose_warmup_steps()
+
+    def posed(self, body, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frame ``i``'s corrected body: vertices [V,3] (differentiable in ``delta``) and body_pose [69]
+        for the rectifier. The rectifier sees the corrected pose but sends no gradient into it: the
+        corrections are to align the body with the image, not to suit the MLP."""
+        one = apply_pose_corrections(self.base.select(slice(i, i + 1)), self.delta[i : i + 1])
+        betas = None if self.betas is None else self.betas[i : i + 1]
+        vertices = body(betas, one.global_orient, one.body_pose, one.transl).vertices[0].float()
+        return vertices, one.body_pose[0].detach()
+
+    def zero_grad(self) -> None:
+        self.delta.grad = None
+
+    @torch.no_grad()
+    def step(self, i: int, iteration: int, ok: torch.Tensor) -> None:
+        """Adam on frame ``i``'s correction with the lr of step ``iteration`` (1-based); clears the gradient.
+        ``ok`` (a bool tensor on the device) false leaves the frame's correction and Adam state as they
+        were, decided on the device so that a skipped step costs no host synchronisation."""
+        grad = self.delta.grad
+        self.delta.grad = None
+        if grad is None:
+            return
+        rows = slice(i, i + 1)
+        state = (self.delta, self.exp_avg, self.exp_avg_sq, self.steps)
+        before = [t[rows].clone() for t in state]
+        lr = self.lr * self.cfg.pose_lr_scale(iteration - 1)
+        correction_adam_step(self.delta, torch.nan_to_num(grad[rows]), self.exp_avg, self.exp_avg_sq, self.steps,
+                             rows, lr)
+        for t, old in zip(state, before):
+            t[rows] = torch.where(ok, t[rows], old)
+
+    @torch.no_grad()
+    def poses(self) -> PoseSequence:
+        """The corrected poses of every training frame (on the CPU)."""
+        return apply_pose_corrections(self.base, self.delta.detach()).to("cpu")
+
+    # --- checkpoints ----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Tensors on the CPU: the base poses (so a trained avatar has its refined poses without the
+        dataset), the corrections and the Adam state."""
+        cpu = lambda t: t.detach().cpu().clone()  # noqa: E731
+        return {
+            "base": {"global_orient": cpu(self.base.global_orient), "body_pose": cpu(self.base.body_pose),
+                     "transl": cpu(self.base.transl)},
+            "delta": cpu(self.delta), "exp_avg": cpu(self.exp_avg), "exp_avg_sq": cpu(self.exp_avg_sq),
+            "steps": cpu(self.steps),
+        }  # fmt: skip
+
+    @torch.no_grad()
+    def load_state_dict(self, state: dict, where: str) -> None:
+        base = state["base"]
+        if base["body_pose"].shape[0] != len(self):
+            raise UserError(f"{where}: its pose corrections are for {base['body_pose'].shape[0]} training frames, "
+                            f"the dataset now has {len(self)}")
+        mine = (self.base.global_orient, self.base.body_pose, self.base.transl)
+        theirs = (base["global_orient"], base["body_pose"], base["transl"])
+        if not all(torch.equal(a.cpu(), b) for a, b in zip(mine, theirs)):
+            raise UserError(f"{where}: the dataset's training poses changed since this run refined them; "
+                            "start a new run")
+        dev = self.delta.device
+        self.delta.copy_(state["delta"].to(dev))
+        self.exp_avg.copy_(state["exp_avg"].to(dev))
+        self.exp_avg_sq.copy_(state["exp_avg_sq"].to(dev))
+        self.steps.copy_(state["steps"].to(dev))
+
+
+def write_poses(path, poses: PoseSequence, index: np.ndarray, split: str) -> None:
+    """The refined training poses as ``RUN/poses.npz`` (written atomically): global_orient [n,3],
+    body_pose [n,69], transl [n,3], index [n] (the dataset's frame numbers), split."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, global_orient=poses.global_orient.numpy(), body_pose=poses.body_pose.numpy(),
+                     transl=poses.transl.numpy(), index=np.asarray(index, np.int64), split=np.array(split))

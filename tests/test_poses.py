@@ -1,0 +1,132 @@
+"""Pose corrections and pose errors (body.corrections), the pose-refinement config, the per-frame Adam,
+and checkpoint migration to the pose-carrying format."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections, joint_angle_errors, pose_error
+from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
+from rmavatar.train.optim import OptimConfig
+from rmavatar.utils import UserError
+
+
+def _random_poses(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return PoseSequence.from_arrays(rng.normal(0, 1.0, (n, 3)), rng.normal(0, 0.5, (n, 69)), rng.normal(0, 0.3, (n, 3)))
+
+
+def test_angle_error_of_a_known_turn_is_its_angle():
+    # Every joint of frame k turned by a known angle about a random axis: the error is that angle.
+    n = 3
+    base = _random_poses(n)
+    angles = np.array([1.0, 7.5, 170.0])  # degrees, near pi too
+    rng = np.random.default_rng(1)
+    turned = []
+    for key, k in (("global_orient", 1), ("body_pose", 23)):
+        r = getattr(base, key).numpy().reshape(n, k, 3)
+        axes = rng.normal(size=(n, k, 3))
+        axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+        delta = axes * np.deg2rad(angles)[:, None, None]
+        rot = Rotation.from_rotvec(delta.reshape(-1, 3)) * Rotation.from_rotvec(r.reshape(-1, 3))
+        turned.append(rot.as_rotvec().reshape(n, 3 * k))
+    other = PoseSequence.from_arrays(turned[0], turned[1], base.transl + torch.tensor([0.0, 0.003, 0.004]))
+    err = joint_angle_errors(base, other)
+    assert err.shape == (n, 24)
+    np.testing.assert_allclose(err.numpy(), np.repeat(angles[:, None], 24, 1), atol=2e-3)
+    summary = pose_error(base, other)
+    assert summary["joint_angle_deg"] == pytest.approx(angles.mean(), abs=2e-3)
+    assert summary["transl_mm"] == pytest.approx(5.0, abs=1e-3)
+    assert pose_error(base, base)["joint_angle_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_corrections_compose_on_the_left_and_undo_noise():
+    base = _random_poses(4)
+    delta = torch.tensor(np.random.default_rng(2).normal(0, 0.1, (4, CORRECTION_DIM)), dtype=torch.float32)
+    fixed = apply_pose_corrections(base, delta)
+    for j in range(24):
+        rv = torch.cat((base.global_orient, base.body_pose), 1).reshape(4, 24, 3)[:, j]
+        out = torch.cat((fixed.global_orient, fixed.body_pose), 1).reshape(4, 24, 3)[:, j]
+        want = Rotation.from_rotvec(delta[:, 3 * j: 3 * j + 3].numpy()) * Rotation.from_rotvec(rv.numpy())
+        np.testing.assert_allclose(Rotation.from_rotvec(out.numpy()).as_matrix(), want.as_matrix(), atol=1e-5)
+    torch.testing.assert_close(fixed.transl, base.transl + delta[:, -3:])
+    # Zero corrections give the poses back; the angle error of a correction is its length.
+    zero = apply_pose_corrections(base, torch.zeros(4, CORRECTION_DIM))
+    assert pose_error(zero, base)["joint_angle_deg"] < 1e-3
+    lengths = torch.linalg.vector_norm(delta[:, :72].reshape(4, 24, 3), dim=-1).double() * 180 / math.pi
+    np.testing.assert_allclose(joint_angle_errors(base, fixed).numpy(), lengths.numpy(), atol=2e-3)
+
+
+def test_corrections_have_finite_gradients_at_zero():
+    base = _random_poses(2)
+    delta = torch.zeros(2, CORRECTION_DIM, requires_grad=True)
+    out = apply_pose_corrections(base, delta)
+    (out.body_pose.sum() + out.global_orient.sum() + out.transl.sum()).backward()
+    assert torch.isfinite(delta.grad).all() and delta.grad.abs().sum() > 0
+
+
+def test_refine_poses_config_round_trips_and_resolves(tmp_path):
+    for value in (None, True, False):
+        cfg = TrainConfig()
+        cfg.optim.refine_poses = value
+        cfg.optim.lr_pose = 0.02
+        save_config(cfg, tmp_path / "c.yaml")
+        back = load_config(tmp_path / "c.yaml")
+        assert back.optim.refine_poses is value and back.optim.lr_pose == 0.02
+        assert to_dict(from_dict(TrainConfig, to_dict(cfg))) == to_dict(cfg)
+    assert OptimConfig().refines_poses(True) and not OptimConfig().refines_poses(False)
+    assert not OptimConfig(refine_poses=False).refines_poses(True)
+    assert OptimConfig(refine_poses=True).refines_poses(False)
+    (tmp_path / "bad.yaml").write_text("optim:\n  refine_poses: maybe\n")
+    with pytest.raises(UserError, match="refine_poses"):
+        load_config(tmp_path / "bad.yaml")
+    with pytest.raises(UserError, match="pose_warmup"):
+        OptimConfig(pose_warmup=1.0).validate()
+
+
+def test_pose_lr_schedule_is_frozen_then_decays():
+    cfg = OptimConfig(iters=100, pose_warmup=0.2, lr_pose_final_scale=0.1)
+    assert cfg.pose_warmup_steps() == 20
+    assert cfg.pose_lr_scale(0) == 0.0 and cfg.pose_lr_scale(19) == 0.0
+    assert cfg.pose_lr_scale(20) == pytest.approx(1.0)
+    assert cfg.pose_lr_scale(100) == pytest.approx(0.1)
+    assert cfg.pose_lr_scale(60) == pytest.approx(math.sqrt(0.1))  # log-linear: halfway is the geometric mean
+
+
+def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
+    from rmavatar.train.poses import PoseRefiner
+
+    cfg = OptimConfig(iters=10, pose_warmup=0.0, lr_pose=0.01, lr_pose_transl=0.002, lr_pose_final_scale=1.0)
+    ref = PoseRefiner(_random_poses(3), None, cfg, torch.device("cpu"))
+    grad = torch.zeros(3, CORRECTION_DIM)
+    grad[1] = torch.linspace(-1, 1, CORRECTION_DIM) + 0.01
+    ref.delta.grad = grad.clone()
+    ref.step(1, 1)
+    # One second moment per frame (the gradient's squared norm): the first step is lr * g / |g|, along
+    # the gradient (a coordinate with a small gradient moves little); other frames do not move.
+    lr = torch.cat((torch.full((72,), 0.01), torch.full((3,), 0.002)))
+    expected = -lr * grad[1] / grad[1].norm()
+    torch.testing.assert_close(ref.delta[1].detach(), expected, atol=1e-7, rtol=1e-4)
+    # With a constant gradient the bias-corrected moments are g and |g|^2: the same step again.
+    ref.delta.grad = grad.clone()
+    ref.step(1, 2)
+    torch.testing.assert_close(ref.delta[1].detach(), 2 * expected, atol=1e-7, rtol=1e-4)
+    assert ref.delta[0].abs().sum() == 0 and ref.delta[2].abs().sum() == 0
+    assert ref.steps.tolist() == [0, 2, 0] and ref.delta.grad is None
+    # A state dict restores exactly; a changed dataset pose is refused.
+    other = PoseRefiner(_random_poses(3), None, cfg, torch.device("cpu"))
+    other.load_state_dict(ref.state_dict(), "ckpt")
+    assert torch.equal(other.delta, ref.delta) and torch.equal(other.steps, ref.steps)
+    with pytest.raises(UserError, match="changed"):
+        PoseRefiner(_random_poses(3, seed=5), None, cfg, torch.device("cpu")).load_state_dict(ref.state_dict(), "ckpt")
+
+
+def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():
+    from rmavatar.avatar.trained import CHECKPOINT_VERSION, _MIGRATIONS
+
+    assert CHECKPOINT_VERSION == 4
+    migrated = _MIGRATIONS[3]({"format": "rmavatar-checkpoint", "version": 3, "iteration": 5})
+    assert migrated["version"] == 4 and migrated["poses"] is None and migrated["iteration"] == 5

@@ -1,0 +1,115 @@
+"""Pose refinement in the training loop and test-time pose fitting in evaluation, end to end on a tiny
+noisy synthetic subject: resume keeps the refined poses bit-identical, the refined poses reach the run
+folder and the trained avatar, --fit-poses never touches the checkpoint and fits the frames better."""
+
+import hashlib
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+
+from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
+from rmavatar.train.config import TrainConfig
+from rmavatar.train.trainer import Trainer, train
+
+SIZE = 48
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory):
+    from rmavatar.data.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("synth") / "noisy"
+    synthesize(out, SynthConfig(size=SIZE, seed=0, train=3, test=1, novel_pose=1, ss=1, pose_noise=10.0),
+               progress=False)  # fmt: skip
+    return str(out)
+
+
+def _cfg(data, iters):
+    cfg = TrainConfig()
+    cfg.data.path = data
+    cfg.data.size = SIZE
+    cfg.optim.iters = iters
+    cfg.optim.refine_poses = True
+    cfg.optim.pose_warmup = 0.0  # refine from the first step, so a short run exercises it
+    cfg.threads = 1
+    cfg.log.tensorboard = False
+    cfg.log.preview_every = 10**6
+    return cfg
+
+
+def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypatch):
+    n = 6
+    whole = train(_cfg(noisy, n), tmp_path / "whole", progress=False)
+    assert whole.iteration == n
+    # The same run stopped by a real Ctrl-C after n/2 iterations (a checkpoint), then resumed to n.
+    original = Trainer.step
+
+    def step(self):
+        out = original(self)
+        if self.iteration + 1 == n // 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "step", step)
+        first = train(_cfg(noisy, n), tmp_path / "split", progress=False)
+    assert first.interrupted and first.iteration == n // 2
+    train(None, tmp_path / "split", resume=True, progress=False)
+    a = read_checkpoint(checkpoint_path(tmp_path / "whole"))["poses"]
+    b = read_checkpoint(checkpoint_path(tmp_path / "split"))["poses"]
+    assert a["delta"].abs().sum() > 0  # the corrections did move
+    for key in ("delta", "exp_avg", "exp_avg_sq", "steps"):
+        assert torch.equal(a[key], b[key]), key
+    pa, pb = np.load(tmp_path / "whole" / "poses.npz"), np.load(tmp_path / "split" / "poses.npz")
+    for key in ("global_orient", "body_pose", "transl", "index"):
+        assert np.array_equal(pa[key], pb[key]), key
+    # The trained avatar exposes the same refined poses as RUN/poses.npz; the error report exists.
+    run = load_trained(tmp_path / "whole")
+    np.testing.assert_allclose(run.training_poses.body_pose.numpy(), pa["body_pose"], atol=1e-6)
+    assert (tmp_path / "whole" / "pose_error.json").is_file()
+    # Resuming with refinement switched off is refused (the config is the run's).
+    from rmavatar.utils import UserError
+
+    with pytest.raises(UserError, match="refine_poses"):
+        train(None, tmp_path / "whole", resume=True, overrides=[(False, "optim", "refine_poses")], progress=False)
+
+
+def test_refinement_reduces_the_pose_error(noisy, tmp_path):
+    """The images show the true poses, the dataset holds them with 10 degrees of noise per axis: the
+    refined training poses are closer to the true ones than the given ones, the global orientation too,
+    and no joint gets more than a degree worse. (Measured: 16.40 -> 16.35 degrees, global 18.10 -> 17.51:
+    a small gain; see docs/train.md for what limits it.)"""
+    import json
+
+    cfg = _cfg(noisy, 60)
+    cfg.optim.pose_warmup = 0.25
+    train(cfg, tmp_path / "run", progress=False)
+    err = json.loads((tmp_path / "run" / "pose_error.json").read_text())
+    given, refined = err["given"], err["refined"]
+    print("pose error given / refined:", given["joint_angle_deg"], refined["joint_angle_deg"],
+          "global:", given["per_joint_deg"][0], refined["per_joint_deg"][0], "transl mm:", refined["transl_mm"])
+    assert refined["joint_angle_deg"] < given["joint_angle_deg"]
+    assert refined["per_joint_deg"][0] < given["per_joint_deg"][0]
+    assert max(r - g for r, g in zip(refined["per_joint_deg"], given["per_joint_deg"])) < 1.0
+
+
+def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_path):
+    from rmavatar.evaluate.fit import FitConfig
+    from rmavatar.evaluate.run import evaluate_run
+
+    cfg = _cfg(noisy, 30)
+    cfg.optim.refine_poses = False
+    train(cfg, tmp_path / "run", progress=False)
+    ckpt = checkpoint_path(tmp_path / "run")
+    before = hashlib.sha256(ckpt.read_bytes()).hexdigest()
+    plain = evaluate_run(tmp_path / "run", split="train", device="cpu", progress=False)
+    fitted = evaluate_run(tmp_path / "run", split="train", device="cpu", progress=False,
+                          fit=FitConfig(steps=15, batch=3, lr_rotation=0.01))
+    assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == before
+    assert fitted["protocol"]["fit_poses"] == 15 and plain["protocol"]["fit_poses"] is None
+    print("PSNR without / with fitting:", plain["mean"]["psnr"], fitted["mean"]["psnr"],
+          "pose error:", fitted["pose_error"])
+    assert fitted["mean"]["psnr"] > plain["mean"]["psnr"]
