@@ -104,7 +104,7 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     grad = torch.zeros(3, CORRECTION_DIM)
     grad[1] = torch.linspace(-1, 1, CORRECTION_DIM) + 0.01
     ref.delta.grad = grad.clone()
-    ref.step(1, 1)
+    ref.step(1, 1, torch.tensor(True))
     # One second moment per frame (the gradient's squared norm): the first step is lr * g / |g|, along
     # the gradient (a coordinate with a small gradient moves little); other frames do not move.
     lr = torch.cat((torch.full((72,), 0.01), torch.full((3,), 0.002)))
@@ -112,7 +112,7 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     torch.testing.assert_close(ref.delta[1].detach(), expected, atol=1e-7, rtol=1e-4)
     # With a constant gradient the bias-corrected moments are g and |g|^2: the same step again.
     ref.delta.grad = grad.clone()
-    ref.step(1, 2)
+    ref.step(1, 2, torch.tensor(True))
     torch.testing.assert_close(ref.delta[1].detach(), 2 * expected, atol=1e-7, rtol=1e-4)
     assert ref.delta[0].abs().sum() == 0 and ref.delta[2].abs().sum() == 0
     assert ref.steps.tolist() == [0, 2, 0] and ref.delta.grad is None
@@ -122,6 +122,14 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     assert torch.equal(other.delta, ref.delta) and torch.equal(other.steps, ref.steps)
     with pytest.raises(UserError, match="changed"):
         PoseRefiner(_random_poses(3, seed=5), None, cfg, torch.device("cpu")).load_state_dict(ref.state_dict(), "ckpt")
+    # A step the trainer's device-side check rejects (a non-finite gradient) changes nothing.
+    state = [t.detach().clone() for t in (ref.delta, ref.exp_avg, ref.exp_avg_sq, ref.steps)]
+    bad = grad.clone()
+    bad[1, 5] = float("nan")
+    ref.delta.grad = bad
+    ref.step(1, 3, torch.tensor(False))
+    for before, after in zip(state, (ref.delta, ref.exp_avg, ref.exp_avg_sq, ref.steps)):
+        assert torch.equal(before, after.detach())
 
 
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():

@@ -47,7 +47,7 @@ class AvatarConfig:
     # "local": F(gamma(rest-pose position), the pose of the joints skinning the Gaussian's triangle) ->
     # offsets in the triangle's frame, in units of its scale w, so they turn and grow with the body;
     # False = the paper's "w/o GauRec": Gaussians fixed to their faces. True (older configs) = "paper".
-    rectifier: bool | str = "paper"
+    rectifier: bool | str = "local"  # docs/model.md: measured better than "paper" on every metric
     # "local": a face's Gaussians see joint j's pose when j's skinning weight on one of the face's
     # corners exceeds this (Anny: ~1.6 of the 23 body joints per face).
     rectifier_mask_threshold: float = 0.01

@@ -194,7 +194,7 @@ def _variant(variant: Any, vw: str) -> dict:
         if variant not in ABLATIONS:
             raise UserError(f"{vw}: unknown variant {variant!r}: a bare name must be one of "
                             f"{', '.join(ABLATIONS)}; write {{name: ..., overrides: {{...}}}} for your own")
-        return {"name": variant, "overrides": {variant: True} if variant != "full" else {}}
+        return {"name": variant, "overrides": {variant: True}}
     _check_mapping(variant, vw)
     _check_keys(variant, {"name", "overrides", "splits"}, vw)
     if not isinstance(variant.get("name"), str):
@@ -254,7 +254,7 @@ def expand_switches(overrides: dict, where: str) -> dict:
     for key, value in flatten(overrides).items():
         if key in SWITCHES:
             out[SWITCHES[key]] = value
-        elif key in ABLATIONS and key != "full":
+        elif key in ABLATIONS:
             if not isinstance(value, bool):
                 raise UserError(f"{where}.{key}: expected true/false, got {value!r}")
             if value:
