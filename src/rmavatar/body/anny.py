@@ -302,10 +302,11 @@ class AnnyBody(BodyModel):
         t = root_translation[:, None]
         return v + t, heads + t
 
-    def forward(self, betas, global_orient, body_pose, transl=None) -> BodyOutput:
+    def forward(self, betas, global_orient, body_pose, transl=None, check_values=True) -> BodyOutput:
         """SMPL parameters -> posed Anny. ``betas`` are ignored (shape comes from the preset)."""
         _, global_orient, body_pose, transl = check_pose_inputs(
-            None, global_orient, body_pose, transl, 0, self.rest_vertices.dtype, self.rest_vertices.device
+            None, global_orient, body_pose, transl, 0, self.rest_vertices.dtype, self.rest_vertices.device,
+            check_values,
         )
         rotations = self.bone_rotations(global_orient, body_pose)
         # SMPL rotates the body about its rest pelvis J0; our chain rotates about Anny's root head h0.

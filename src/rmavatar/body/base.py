@@ -63,6 +63,7 @@ class BodyModel(torch.nn.Module):
         global_orient: torch.Tensor,
         body_pose: torch.Tensor,
         transl: torch.Tensor | None = None,
+        check_values: bool = True,
     ) -> BodyOutput:  # pragma: no cover - implemented by subclasses
         raise NotImplementedError
 
@@ -80,10 +81,13 @@ def check_pose_inputs(
     num_betas: int,
     dtype: torch.dtype,
     device: torch.device,
+    check_values: bool = True,
 ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Check shapes and values of SMPL-format parameters; return them as ``dtype`` tensors.
 
-    Raises UserError naming the argument and the problem (wrong shape, NaN/inf).
+    Raises UserError naming the argument and the problem (wrong shape, NaN/inf). ``check_values=False``
+    skips the NaN/inf test, a host synchronisation per argument: for callers that check the result on
+    the device themselves (the training step with pose refinement).
     """
     global_orient = _as_tensor(global_orient, "global_orient", dtype, device)
     body_pose = _as_tensor(body_pose, "body_pose", dtype, device)
@@ -113,7 +117,7 @@ def check_pose_inputs(
             raise UserError(f"betas must have shape [{B}, <= {num_betas}], got {list(betas.shape)}")
     for name, value in (("global_orient", global_orient), ("body_pose", body_pose), ("transl", transl),
                         ("betas", betas)):  # fmt: skip
-        if value is not None and not bool(torch.isfinite(value).all()):
+        if check_values and value is not None and not bool(torch.isfinite(value).all()):
             raise UserError(f"{name} contains NaN or infinite values")
     return betas, global_orient, body_pose, transl
 

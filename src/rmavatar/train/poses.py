@@ -53,7 +53,8 @@ class PoseRefiner:
         corrections are to align the body with the image, not to suit the MLP."""
         one = apply_pose_corrections(self.base.select(slice(i, i + 1)), self.delta[i : i + 1])
         betas = None if self.betas is None else self.betas[i : i + 1]
-        vertices = body(betas, one.global_orient, one.body_pose, one.transl).vertices[0].float()
+        # NaN/inf are caught by the trainer's one device-side check (the Gaussians and every gradient)
+        vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False).vertices[0].float()
         return vertices, one.body_pose[0].detach()
 
     def zero_grad(self) -> None:
