@@ -26,7 +26,7 @@ def fake_run():
     from rmavatar.body import load_body_model
 
     body = load_body_model("anny")
-    avatar = AvatarConfig(sh_degree=1).build(body)
+    avatar = AvatarConfig(rectifier="paper", sh_degree=1).build(body)
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
         avatar.sh_dc.copy_(torch.randn(avatar.sh_dc.shape, generator=g))

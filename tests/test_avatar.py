@@ -25,6 +25,10 @@ from rmavatar.utils import UserError
 
 from devices import DEVICES
 
+# These tests check the paper's design on a bare mesh (no skinning weights); the local design, the
+# default, has its own tests in test_rectifier.py.
+PAPER = AvatarConfig(rectifier="paper")
+
 
 def sphere():
     m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
@@ -253,10 +257,10 @@ def test_initial_colors_and_errors():
     with pytest.raises(UserError):
         Avatar(f, None, v, init_colors=torch.rand(7, 3))
     with pytest.raises(UserError):
-        Avatar(f, None, v, AvatarConfig(placement="area"))
+        Avatar(f, None, v, AvatarConfig(rectifier="paper", placement="area"))
     with pytest.raises(ValueError):
         av(v[:-1])
-    av2 = Avatar(f, None, v)
+    av2 = Avatar(f, None, v, PAPER)
     with pytest.raises(ValueError):
         av2(v, None)
     with pytest.raises(ValueError):
@@ -343,7 +347,7 @@ def test_rectifier_starts_as_identity_and_is_deterministic():
     v, f = sphere()
     gen = torch.Generator().manual_seed(5)
     torch.manual_seed(0)
-    av = Avatar(f, None, v)
+    av = Avatar(f, None, v, PAPER)
     randomise(av, gen)
     pose = torch.randn(69, generator=gen) * 0.5
     g = av(v, pose)
@@ -364,7 +368,7 @@ def test_rectifier_starts_as_identity_and_is_deterministic():
 def test_rectified_attributes_follow_the_paper():
     v, f = sphere()
     gen = torch.Generator().manual_seed(6)
-    av = Avatar(f, None, v).double()
+    av = Avatar(f, None, v, PAPER).double()
     randomise(av, gen)
     with torch.no_grad():
         av.rectifier.l5.weight.normal_(0, 0.05, generator=gen)
@@ -384,7 +388,7 @@ def test_rectified_attributes_follow_the_paper():
 def test_gradients_reach_every_parameter(device):
     v, f = sphere()
     gen = torch.Generator().manual_seed(7)
-    av = Avatar(f, None, v)
+    av = Avatar(f, None, v, PAPER)
     randomise(av, gen)
     av.to(device)
     av.active_sh_degree.fill_(3)
@@ -408,9 +412,9 @@ def test_sh_degree_grows():
 
 def test_state_dict_round_trip_with_a_different_count():
     v, f = sphere()
-    a = Avatar(f, None, v, AvatarConfig(placement="area", num_gaussians=333))
+    a = Avatar(f, None, v, AvatarConfig(rectifier="paper", placement="area", num_gaussians=333))
     a.set_frequency_alpha(2.0)
-    b = Avatar(f, None, v)
+    b = Avatar(f, None, v, PAPER)
     b.load_state_dict(a.state_dict())
     assert b.num_gaussians == 333 and float(b.rectifier.freq_alpha) == 2.0
     pose = torch.randn(69)
@@ -425,7 +429,7 @@ class _Body:
 def test_checkpoint_state_round_trip_and_body_check():
     v, f = sphere()
     body = _Body(v, f)
-    a = AvatarConfig(placement="area", num_gaussians=200, sh_degree=2).build(body)
+    a = AvatarConfig(rectifier="paper", placement="area", num_gaussians=200, sh_degree=2).build(body)
     assert a.num_gaussians == 200 and int(a.face_ids.max()) < f.shape[0] - 3
     a.set_progress(700, 1000)
     state = a.checkpoint_state()
@@ -444,7 +448,7 @@ def test_checkpoint_state_round_trip_and_body_check():
 
 def test_set_progress_schedules():
     v, f = sphere()
-    a = Avatar(f, None, v, AvatarConfig(sh_degree=3, c2f_start=0.1, c2f_end=0.5))
+    a = Avatar(f, None, v, AvatarConfig(rectifier="paper", sh_degree=3, c2f_start=0.1, c2f_end=0.5))
     a.set_progress(0, 1000)
     assert int(a.active_sh_degree) == 0 and float(a.rectifier.freq_alpha) == 0.0
     a.set_progress(300, 1000)  # SH every 20 iterations; window half open
@@ -453,7 +457,7 @@ def test_set_progress_schedules():
     assert int(a.active_sh_degree) == 0
     a.set_progress(1000, 1000)
     assert float(a.rectifier.freq_alpha) == 6.0
-    b = Avatar(f, None, v, AvatarConfig(coarse_to_fine=False))
+    b = Avatar(f, None, v, AvatarConfig(rectifier="paper", coarse_to_fine=False))
     b.set_progress(0, 1000)
     assert float(b.rectifier.freq_alpha) == 6.0
 

@@ -99,7 +99,7 @@ def test_loss_gradients_reach_every_avatar_parameter(device):
     m = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
     v = torch.tensor(m.vertices, dtype=torch.float32)
     f = torch.tensor(m.faces)
-    av = Avatar(f, None, v, AvatarConfig()).to(device)
+    av = Avatar(f, None, v, AvatarConfig(rectifier="paper")).to(device)
     v = v.to(device)
     av.active_sh_degree.fill_(3)
     with torch.no_grad():
