@@ -179,7 +179,7 @@ def evaluate_run(
                 "run": str(Path(run_dir).resolve()),
                 "iteration": run.iteration,
                 "body": str(getattr(run.body, "spec", "")),
-                "rectifier": getattr(run.avatar, "rectifier", None) is not None,
+                "rectifier": run.avatar.config.rectifier,  # the design's name ("local", "paper") or False
                 "data": str(spec),
                 "split": split,
                 "frames": n,
