@@ -23,6 +23,7 @@ from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
 from rmavatar.utils.config import check_fields
+from rmavatar.utils.device import host_scalar, set_host_scalar
 
 RECTIFIERS = ("paper", "local")  # model.rectifier designs (False: no rectifier)
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
@@ -298,24 +299,12 @@ class Avatar(nn.Module):
         the coarse-to-fine encoding window. Absolute (not incremental), so resuming is exact."""
         every = max(1, round(self.config.sh_every_frac * total))
         degree = min(self.config.sh_degree, iteration // every)
-        if self._sh_degree() != degree:
-            self.active_sh_degree.fill_(degree)
-            self._sh_degree_cache = (self.active_sh_degree, self.active_sh_degree._version, degree)
+        set_host_scalar(self, "active_sh_degree", degree, int)
         if self.config.coarse_to_fine:
             start, end = self.config.c2f_start * total, self.config.c2f_end * total
             self.set_frequency_alpha(window_alpha(iteration, round(start), round(end), self.config.num_freqs))
         else:
             self.set_frequency_alpha(self.config.num_freqs)
-
-    def _sh_degree(self) -> int:
-        """``active_sh_degree`` as a Python int, read from the device only when the buffer changed
-        (set_progress fills it every step with the same value for thousands of steps)."""
-        buf = self.active_sh_degree
-        cached = getattr(self, "_sh_degree_cache", None)
-        if cached is None or cached[0] is not buf or cached[1] != buf._version:
-            cached = (buf, buf._version, int(buf))
-            self._sh_degree_cache = cached
-        return cached[2]
 
     # ------------------------------------------------------------------ posing
     def posed(self, vertices: torch.Tensor):
@@ -398,7 +387,7 @@ class Avatar(nn.Module):
             r = quat_multiply(r, dq)
             s = (s + d_s).clamp_min(self.config.min_scale)
             offsets = (d_mu, d_s, d_r)
-        deg = self._sh_degree()
+        deg = host_scalar(self, "active_sh_degree", int)
         k = (deg + 1) ** 2
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, self.sh_rest[:, : k - 1]), dim=1)
         return GaussianSet(

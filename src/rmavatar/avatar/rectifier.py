@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rmavatar.utils.device import constant
+from rmavatar.utils.device import constant, host_scalar, set_host_scalar
 
 POSE_DIM = 69
 OUT_DIM = 10  # d_mu 3, d_s 3, d_r 4
@@ -152,22 +152,10 @@ class Rectifier(nn.Module):
         self.register_buffer("freq_alpha", torch.tensor(float(num_freqs)))
 
     def set_frequency_alpha(self, alpha: float) -> None:
-        alpha = float(alpha)
-        if self._alpha() != alpha:
-            self.freq_alpha.fill_(alpha)
-            self._alpha_cache = (self.freq_alpha, self.freq_alpha._version, alpha)
-
-    def _alpha(self) -> float:
-        """``freq_alpha`` as a float, read from the device (a host sync) only when the buffer changed."""
-        buf = self.freq_alpha
-        cached = getattr(self, "_alpha_cache", None)
-        if cached is None or cached[0] is not buf or cached[1] != buf._version:
-            cached = (buf, buf._version, float(buf))
-            self._alpha_cache = cached
-        return cached[2]
+        set_host_scalar(self, "freq_alpha", alpha)
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        alpha = self._alpha()
+        alpha = host_scalar(self, "freq_alpha")
         weights = None
         if alpha < self.num_freqs:
             weights = frequency_window(self.num_freqs, alpha, x.device)

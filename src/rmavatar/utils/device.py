@@ -1,4 +1,4 @@
-"""Picking the torch device."""
+"""Picking the torch device; constants and scalar buffers read without a host sync per step."""
 
 from __future__ import annotations
 
@@ -36,3 +36,24 @@ def _constant(values, dtype, device):
     import torch
 
     return torch.tensor(values, dtype=dtype, device=device)
+
+
+def host_scalar(owner, name: str, cast=float):
+    """The 0-d buffer ``owner.<name>`` as a Python number, read from the device (a host sync) only when
+    the buffer changed since the last read (its identity or in-place version), not on every step."""
+    buf = getattr(owner, name)
+    cache = owner.__dict__.setdefault("_host_scalars", {})
+    cached = cache.get(name)
+    if cached is None or cached[0] is not buf or cached[1] != buf._version:
+        cached = cache[name] = (buf, buf._version, cast(buf))
+    return cached[2]
+
+
+def set_host_scalar(owner, name: str, value, cast=float) -> None:
+    """Fill the 0-d buffer ``owner.<name>`` with ``value`` unless it already holds it (no write, no
+    sync), keeping :func:`host_scalar`'s copy current."""
+    value = cast(value)
+    if host_scalar(owner, name, cast) != value:
+        buf = getattr(owner, name)
+        buf.fill_(value)
+        owner.__dict__["_host_scalars"][name] = (buf, buf._version, value)
