@@ -1,7 +1,7 @@
 """Measure `rmavatar capture` on a synthetic subject whose true poses are known.
 
     PYTHONPATH=src python scripts/measure_capture.py WORK [--size 256] [--seed 0] [--iters 1000]
-        [--skip-training] [--json OUT]
+        [--refine-poses auto|on|off] [--skip-training] [--json OUT]
 
 Makes the subject (`rmavatar synth`, default 100 train + 30 test + 30 novel-pose frames), renders its
 turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view,
@@ -9,7 +9,10 @@ and reports the fitted body against the truth per split: mean 2D joint error (% 
 in the image) and root-aligned 3D joint error (mm) over the 24 joints. Unless --skip-training, it then
 trains one avatar on the true poses and one on the captured data with the demo's config (--iters,
 max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's test and novel_pose splits
-(true poses, the run's own body). Everything goes under WORK; finished steps are reused.
+(true poses, the run's own body). --refine-poses sets the captured-data run's ``optim.refine_poses``
+(auto: on, as the captured dataset says its poses are estimated); its run is ``WORK/run_captured`` for
+auto and ``WORK/run_captured_refine_{on,off}`` otherwise. Everything goes under WORK; finished steps are
+reused.
 """
 
 from __future__ import annotations
@@ -66,7 +69,7 @@ def fit_errors(truth: Path, captured: Path, first: int) -> dict:
             for split, idx in meta["splits"].items()}  # fmt: skip
 
 
-def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int) -> dict:
+def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None) -> dict:
     from rmavatar.evaluate import evaluate_run
     from rmavatar.train import TrainConfig, train
 
@@ -74,6 +77,7 @@ def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int) ->
         cfg = TrainConfig()
         cfg.data.path, cfg.data.size, cfg.optim.iters = str(data), size, iters
         cfg.seed, cfg.density.max_gaussians = 0, 40_000
+        cfg.optim.refine_poses = refine
         t = time.perf_counter()
         train(cfg, run, progress=True)
         print(f"trained {run} in {time.perf_counter() - t:.0f} s")
@@ -90,6 +94,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--iters", type=int, default=1000)
+    parser.add_argument("--refine-poses", choices=("auto", "on", "off"), default="auto")
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
@@ -119,8 +124,10 @@ def main() -> None:
     print(json.dumps(result, indent=1))
     if not args.skip_training:
         result["avatar_true_poses"] = train_and_eval(truth, work / "run_true", truth, args.iters, args.size)
-        result["avatar_captured"] = train_and_eval(work / "captured_turn", work / "run_captured", truth,
-                                                   args.iters, args.size)
+        refine = {"auto": None, "on": True, "off": False}[args.refine_poses]
+        run = work / ("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}")
+        result["refine_poses"] = args.refine_poses
+        result["avatar_captured"] = train_and_eval(work / "captured_turn", run, truth, args.iters, args.size, refine)
         print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured")}, indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
