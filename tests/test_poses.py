@@ -132,6 +132,39 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
         assert torch.equal(before, after.detach())
 
 
+def test_per_joint_adam_moves_each_joint_along_its_own_gradient():
+    """A second moment per joint ([n,25], as test-time fitting keeps it): the first step is lr * g / |g_j|
+    for joint j's three values (and the translation's), so every joint with a gradient moves by lr."""
+    from rmavatar.body.corrections import correction_adam_step
+
+    grad = torch.zeros(2, CORRECTION_DIM, dtype=torch.float64)
+    grad[1] = torch.linspace(-1, 1, CORRECTION_DIM, dtype=torch.float64) + 0.01
+    grad[1, 30:33] = 0.0  # a joint the image does not see stays put
+    delta = torch.zeros_like(grad)
+    exp_avg, exp_avg_sq = torch.zeros_like(grad), torch.zeros(2, 25, dtype=torch.float64)
+    steps = torch.zeros(2, dtype=torch.long)
+    lr = torch.cat((torch.full((72,), 0.01), torch.full((3,), 0.002))).double()
+    correction_adam_step(delta, grad[1:], exp_avg, exp_avg_sq, steps, slice(1, 2), lr)
+    g = grad[1]
+    norms = torch.cat((g[:72].reshape(24, 3).norm(dim=-1).repeat_interleave(3), g[72:].norm().expand(3)))
+    expected = -lr * g / norms.clamp_min(1e-300)
+    expected[30:33] = 0.0
+    torch.testing.assert_close(delta[1], expected, atol=1e-9, rtol=1e-6)
+    step_lengths = delta[1, :72].reshape(24, 3).norm(dim=-1)
+    assert torch.allclose(step_lengths[torch.arange(24) != 10], torch.tensor(0.01, dtype=torch.float64))
+    assert delta[0].abs().sum() == 0 and steps.tolist() == [0, 1]
+
+
+def test_fit_config_refuses_bad_settings():
+    from rmavatar.evaluate.fit import FitConfig
+
+    for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
+                       ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales")):
+        with pytest.raises(UserError, match=match):
+            FitConfig(**bad).validate()
+    assert "4x4 then 2x2 then 1x1" in FitConfig().protocol()["loss"]
+
+
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():
     from rmavatar.avatar.trained import CHECKPOINT_VERSION, _MIGRATIONS
 

@@ -98,6 +98,24 @@ def test_local_offsets_are_in_units_of_the_triangle_scale():
     assert torch.allclose(b.scales, 2.5 * a.scales, atol=1e-12)
 
 
+@pytest.mark.parametrize("design", ["local", "paper"])
+def test_held_rectifier_outputs_give_the_same_gaussians(design):
+    """forward(..., rectified=rectify(...)) (what test-time pose fitting holds between refreshes) is the
+    forward that runs the rectifier; held outputs of another pose are not."""
+    gen = torch.Generator().manual_seed(3)
+    body = ToyBody()
+    av = make_avatar(body, design, gen)
+    pose = torch.randn(69, generator=gen, dtype=torch.float64) * 0.5
+    v = posed_toy(body, gen)
+    a, b = av(v, pose), av(v, rectified=av.rectify(v, pose))
+    for x, y in zip((a.means, a.quats, a.scales, *a.offsets), (b.means, b.quats, b.scales, *b.offsets)):
+        torch.testing.assert_close(x, y, atol=1e-12, rtol=0)
+    c = av(v, rectified=av.rectify(v, pose + 0.5))
+    assert not torch.allclose(a.means, c.means, atol=1e-6)
+    with pytest.raises(ValueError, match="no rectifier"):
+        AvatarConfig(rectifier=False).build(body).rectify(v.float(), pose.float())
+
+
 # ---------------------------------------------------------------- the pose mask
 def test_mask_groups_follow_the_skinning_weights():
     body = ToyBody()

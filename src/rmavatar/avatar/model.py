@@ -362,25 +362,42 @@ class Avatar(nn.Module):
             raise ValueError("some Gaussians are attached to faces outside binding_faces")
         return slot
 
-    def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:
+    def rectify(self, vertices: torch.Tensor, body_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The rectifier's raw outputs (d_mu, d_s, d_r) for a posed mesh ``vertices`` [V,3] and
+        ``body_pose`` [69]: in the triangles' frames for the local design, in world units for the
+        paper's; what :meth:`forward` takes as ``rectified``."""
+        if self.rectifier is None:
+            raise ValueError("this avatar has no rectifier")
+        if self.config.rectifier == "local":
+            return self._rectify(None, self._face_slot(), body_pose)
+        mu, _, _, _, _, slot = self._posed(vertices)
+        return self._rectify(mu, slot, body_pose)
+
+    def _rectify(self, mu: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
+        if body_pose is None:
+            raise ValueError("this avatar has a rectifier: forward needs body_pose [69]")
+        body_pose = torch.as_tensor(body_pose, dtype=self.means.dtype, device=self.means.device).reshape(-1)
+        if body_pose.numel() != POSE_DIM:
+            raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
+        if self.config.rectifier == "local":
+            group = self.face_pose_group[self.face_ids]
+            return self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
+        return self.rectifier(mu, body_pose)
+
+    def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None,
+                rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> GaussianSet:
         """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
-        pose input; may be None only without a rectifier)."""
+        pose input; may be None only without a rectifier, or with ``rectified``); rectified: the
+        rectifier's raw outputs from :meth:`rectify` to use instead of running it (test-time pose
+        fitting holds them fixed between refreshes)."""
         mu, r, s, frames, w, slot = self._posed(vertices)
         offsets = None
         if self.rectifier is not None:
-            if body_pose is None:
-                raise ValueError("this avatar has a rectifier: forward needs body_pose [69]")
-            body_pose = torch.as_tensor(body_pose, dtype=mu.dtype, device=mu.device).reshape(-1)
-            if body_pose.numel() != POSE_DIM:
-                raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
+            d_mu, d_s, d_r = rectified if rectified is not None else self._rectify(mu, slot, body_pose)
             if self.config.rectifier == "local":
-                group = self.face_pose_group[self.face_ids]
-                d_mu, d_s, d_r = self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
                 # from the triangle's frame (units of w) to world space: turns and scales with it
                 d_mu = w.unsqueeze(-1) * (frames @ d_mu.unsqueeze(-1)).squeeze(-1)
                 d_s = w.unsqueeze(-1) * d_s
-            else:
-                d_mu, d_s, d_r = self.rectifier(mu, body_pose)
             mu = mu + d_mu
             dq = d_r + quat_identity(d_r.dtype, d_r.device)
             dq = dq / torch.linalg.vector_norm(dq, dim=-1, keepdim=True).clamp_min(1e-12)

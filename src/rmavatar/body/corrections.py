@@ -77,25 +77,46 @@ def pose_error(a: PoseSequence, b: PoseSequence) -> dict:
 BETA1, BETA2, EPS = 0.9, 0.999, 1e-12
 
 
+def _per_joint(x: torch.Tensor) -> torch.Tensor:
+    """[k,75] -> [k,25]: sums over each joint's 3 rotation values and over the translation's 3."""
+    return torch.cat((x[:, : NUM_JOINTS * 3].unflatten(-1, (NUM_JOINTS, 3)).sum(-1), x[:, -3:].sum(-1, keepdim=True)), 1)
+
+
 @torch.no_grad()
 def correction_adam_step(delta: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor, exp_avg_sq: torch.Tensor,
                          steps: torch.Tensor, rows: slice, lr: torch.Tensor) -> None:
     """One Adam step, in place, on the corrections ``delta[rows]`` [k,75] with their gradient ``grad`` [k,75].
 
-    Adam with one second moment per frame (``exp_avg_sq`` [n], the running mean of the squared norm of
-    the frame's whole gradient) instead of one per coordinate; ``exp_avg`` [n,75] and the step counts
-    ``steps`` [n] are per frame too, so a frame's state changes only on the steps that update it. A
-    step then moves the correction along its (momentum-averaged) gradient, by at most ``lr`` [75] (radians
-    for the rotations, metres for the translation) when the gradient points one way: coordinates that the
-    image hardly constrains (a hand's roll, a foot, the depth) get a small gradient and move little.
-    Per-coordinate Adam moves every coordinate by about ``lr`` whatever its gradient's size, so
-    unobservable joints drift as fast as the observed ones are corrected (measured: the pose error did not
-    fall). No host synchronisation.
+    Adam with a second moment per frame or per joint instead of one per coordinate: ``exp_avg_sq`` is
+    either [n], the running mean of the squared norm of the frame's whole gradient, or [n,25], of each
+    joint's rotation gradient (24) and of the translation's (1). ``exp_avg`` [n,75] and the step counts
+    ``steps`` [n] are per frame, so a frame's state changes only on the steps that update it. A step
+    moves the frame's correction (or each joint's) along its momentum-averaged gradient by at most ``lr``
+    [75] (radians for the rotations, metres for the translation) when the gradient points one way,
+    keeping the gradient's proportions within the group: per-coordinate Adam moves every coordinate by
+    about ``lr`` whatever its gradient's size, so poorly constrained ones (a hand's roll) drift as fast
+    as the observed ones are corrected.
+
+    Per frame suits training, where a frame is visited rarely and every joint's drift counts; per joint
+    suits test-time fitting, which has many steps on one frame and is scored on the image: a per-frame
+    step limits the whole pose to ``lr``, so the joints that are far off are corrected one after another
+    (measured, 50 fitting steps: 24.5 dB per frame against 30.8 dB per joint). No host synchronisation.
     """
     steps[rows] += 1
     t = steps[rows].to(grad.dtype)
+    sq = grad.square()
+    per_joint = exp_avg_sq.dim() == 2
+    if per_joint:
+        sq = torch.cat((sq[:, : NUM_JOINTS * 3].unflatten(-1, (NUM_JOINTS, 3)).sum(-1), sq[:, -3:].sum(-1, keepdim=True)), 1)
+    else:
+        sq = sq.sum(-1)
     exp_avg[rows] = BETA1 * exp_avg[rows] + (1 - BETA1) * grad
-    exp_avg_sq[rows] = BETA2 * exp_avg_sq[rows] + (1 - BETA2) * grad.square().sum(-1)
+    exp_avg_sq[rows] = BETA2 * exp_avg_sq[rows] + (1 - BETA2) * sq
     m_hat = exp_avg[rows] / (1 - BETA1**t)[:, None]
-    v_hat = exp_avg_sq[rows] / (1 - BETA2**t)
-    delta[rows] -= lr * m_hat / (v_hat.sqrt() + EPS)[:, None]
+    bias = 1 - BETA2**t
+    denom = (exp_avg_sq[rows] / (bias[:, None] if per_joint else bias)).sqrt() + EPS
+    if per_joint:
+        denom = torch.cat((denom[:, :NUM_JOINTS].repeat_interleave(3, 1), denom[:, NUM_JOINTS:].expand(-1, 3)), 1)
+    else:
+        denom = denom[:, None]
+    delta[rows] -= lr * m_hat / denom

@@ -5,8 +5,16 @@ frame (24 joint rotations composed on the left and a translation, :mod:`rmavatar
 starting at zero) is optimised with Adam against the frame's image and mask, for a fixed number of
 steps, several frames at a time. The loss is the mean absolute RGB error to the ground truth composited
 over the evaluation's background plus the mean absolute error of the rendered alpha to the mask (the
-silhouette, which pulls limbs back into place even where the colours are flat). The rectifier sees the
-corrected pose but sends no gradient into it, as in training.
+silhouette, which pulls limbs back into place even where the colours are flat), compared coarse to
+fine (averaged over 4x4, then 2x2 pixel blocks, then per pixel), so that a limb several pixels off
+still feels the pull. The rectifier sees the corrected pose but sends no gradient into it, as in
+training; its output and the view-dependent colours are re-evaluated every ``refresh`` steps and held in
+between, so a step costs only the mesh embedding and the rasterizer (measured 2.1x cheaper than
+re-evaluating them every step, 256 px, 40k Gaussians).
+
+Measured on a 256 px synthetic subject with 3 degrees of noise per axis on every joint (the avatar
+trained on the true poses, the first 3 test frames): 17.61 dB with the given poses, 33.40 dB after
+100 steps, 34.65 dB with the true poses (docs/evaluate.md).
 
 This is the protocol InstantAvatar and GART report PeopleSnapshot numbers with; the evaluation's JSON
 states it (``protocol.fit_poses``).
@@ -17,10 +25,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
-from rmavatar.body.corrections import correction_adam_step
-from rmavatar.render.gaussians import render_gaussians
+from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
+from rmavatar.render.rasterize import rasterize
 from rmavatar.utils import UserError
 
 
@@ -35,18 +44,30 @@ class FitConfig:
     lr_translation: float = 5e-4
     final_scale: float = 0.1
     silhouette: float = 1.0  # weight of the alpha-vs-mask term
+    # Coarse to fine: the images are compared averaged over k x k pixel blocks, each k of ``scales`` for
+    # an equal share of the steps (a limb several pixels off still gets a gradient from the coarse ones;
+    # measured +0.4 dB at 50 steps).
+    scales: tuple[int, ...] = (4, 2, 1)
+    refresh: int = 10  # steps between re-running the rectifier and the view-dependent colours
 
     def validate(self) -> "FitConfig":
         if self.steps < 1:
             raise UserError(f"--fit-poses needs at least 1 step, got {self.steps}")
         if self.batch < 1:
             raise UserError(f"the pose-fitting batch must be >= 1 frame, got {self.batch}")
+        if self.refresh < 1:
+            raise UserError(f"the pose fit's refresh interval must be >= 1 step, got {self.refresh}")
+        if not self.scales or any(int(k) != k or k < 1 for k in self.scales):
+            raise UserError(f"the pose fit's scales must be whole numbers >= 1, got {self.scales}")
         return self
 
     def protocol(self) -> dict:
         return {"steps": self.steps, "batch": self.batch, "lr_rotation": self.lr_rotation,
                 "lr_translation": self.lr_translation, "final_scale": self.final_scale,
-                "loss": f"mean |render - ground truth| (RGB) + {self.silhouette} x mean |alpha - mask|",
+                "loss": f"mean |render - ground truth| (RGB) + {self.silhouette} x mean |alpha - mask|, on "
+                        f"{' then '.join(f'{k}x{k}' for k in self.scales)} pixel blocks (equal shares of the steps)",
+                "optimiser": "Adam, one second moment per joint; rectifier and view-dependent colours held "
+                             f"for {self.refresh} steps at a time",
                 "optimised": "per frame: 24 joint rotations (composed on the left) and the translation; "
                              "avatar frozen"}  # fmt: skip
 
@@ -87,28 +108,50 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
     dev = background.device
     b = len(poses)
     delta = torch.zeros(b, CORRECTION_DIM, device=dev, requires_grad=True)
-    exp_avg, exp_avg_sq = torch.zeros_like(delta), torch.zeros(b, device=dev)
+    exp_avg = torch.zeros_like(delta)
+    exp_avg_sq = torch.zeros(b, NUM_JOINTS + 1, device=dev)
     counts = torch.zeros(b, dtype=torch.long, device=dev)
     lr = torch.full((CORRECTION_DIM,), cfg.lr_rotation, device=dev)
     lr[-3:] = cfg.lr_translation
-    targets, masks = [], []
+    targets, masks, cams = [], [], []
     for f in frames:
-        m = torch.tensor(f.mask, dtype=torch.float32, device=dev)
-        targets.append(torch.tensor(f.image, dtype=torch.float32, device=dev) * m[..., None]
-                       + background * (1 - m[..., None]))
-        masks.append(m[..., None])
+        m = torch.tensor(f.mask, dtype=torch.float32, device=dev)[..., None]
+        targets.append(torch.tensor(f.image, dtype=torch.float32, device=dev) * m + background * (1 - m))
+        masks.append(m)
+        c = f.camera
+        cams.append((torch.tensor(c.viewmat, dtype=torch.float32, device=dev),
+                     torch.tensor(c.K, dtype=torch.float32, device=dev), c.width, c.height))
+    rectified: list = [None] * b
+    colors: list = [None] * b
     for step in range(cfg.steps):
         scale = 1.0 - (1.0 - cfg.final_scale) * step / max(cfg.steps - 1, 1)
+        pool = cfg.scales[step * len(cfg.scales) // cfg.steps]
         fitted = apply_pose_corrections(poses, delta)
         vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl).vertices.float()
         loss = 0.0
-        for k, f in enumerate(frames):
-            gs = avatar(vertices[k], fitted.body_pose[k].detach())
-            cam = f.camera
-            image, alpha, _ = render_gaussians(gs, cam.viewmat, cam.K, cam.width, cam.height, background=background)
-            loss = loss + (image - targets[k]).abs().mean() + cfg.silhouette * (alpha - masks[k]).abs().mean()
+        for k in range(b):
+            viewmat, K, width, height = cams[k]
+            # The rectifier's output and the view-dependent colours send no gradient to the pose; held
+            # fixed between refreshes, a step costs the mesh embedding and the rasterizer only.
+            refresh = step % cfg.refresh == 0
+            if refresh and avatar.rectifier is not None:
+                with torch.no_grad():
+                    rectified[k] = avatar.rectify(vertices[k], fitted.body_pose[k])
+            gs = avatar(vertices[k], rectified=rectified[k])
+            if refresh:
+                with torch.no_grad():
+                    colors[k] = gs.colors(viewmat)
+            image, alpha, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, colors[k], viewmat, K, width,
+                                        height, background=background)
+            loss = loss + (_pooled(image, pool) - _pooled(targets[k], pool)).abs().mean() \
+                + cfg.silhouette * (_pooled(alpha, pool) - _pooled(masks[k], pool)).abs().mean()
         (grad,) = torch.autograd.grad(loss, delta)
         correction_adam_step(delta, grad, exp_avg, exp_avg_sq, counts, slice(0, b), lr * scale)
     with torch.no_grad():
         fitted = apply_pose_corrections(poses, delta)
     return fitted.to("cpu")
+
+
+def _pooled(image: torch.Tensor, k: int) -> torch.Tensor:
+    """image [H,W,C] averaged over k x k blocks (k = 1: itself)."""
+    return image if k == 1 else F.avg_pool2d(image.permute(2, 0, 1), k, ceil_mode=True)
