@@ -13,8 +13,27 @@ from rmavatar.render._numba import numba
 from rmavatar.render.project import Projection
 
 
+# The kernels work in float64 on numpy arrays: the dtype conversions to and from the tensors' dtype are
+# done in numpy, where this backend's data lives, not as tensor operations (a CPU-only path: CUDA
+# tensors take gsplat, which never converts).
 def _np64(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(device="cpu", dtype=torch.float64).numpy())
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+
+
+def _grad64(g: Tensor | None, shape: tuple) -> np.ndarray:
+    """An incoming gradient for the kernels; None (the output was not used) is zeros, made here in numpy
+    rather than by autograd (``set_materialize_grads(False)``)."""
+    return np.zeros(shape) if g is None else _np64(g)
+
+
+_NUMPY_DTYPES = {torch.float16: np.float16, torch.float32: np.float32, torch.float64: np.float64}
+
+
+def _tensor(a: np.ndarray, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """A kernel output as a tensor of ``dtype`` on ``device``."""
+    if dtype not in _NUMPY_DTYPES:  # bfloat16 has no numpy dtype
+        return torch.from_numpy(a).to(device, dtype)
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=_NUMPY_DTYPES[dtype])).to(device)
 
 
 class _Binning:
@@ -44,6 +63,7 @@ class _Composite(torch.autograd.Function):
             *arrays, binning.offsets, binning.ids, binning.width, binning.height, binning.tiles_x,
             binning.tile_order,
         )
+        ctx.set_materialize_grads(False)
         ctx.arrays = arrays
         ctx.binning = binning
         ctx.t_final = t_final
@@ -51,8 +71,8 @@ class _Composite(torch.autograd.Function):
         ctx.device = means2d.device
         ctx.dtypes = [t.dtype for t in (means2d, conics, colors, opacities, background)]
         dtype = means2d.dtype
-        image_t = torch.from_numpy(image).to(means2d.device, dtype)
-        alpha_t = torch.from_numpy(1.0 - t_final).to(means2d.device, dtype)[..., None]
+        image_t = _tensor(image, means2d.device, dtype)
+        alpha_t = _tensor(1.0 - t_final, means2d.device, dtype)[..., None]
         return image_t, alpha_t
 
     @staticmethod
@@ -60,12 +80,13 @@ class _Composite(torch.autograd.Function):
         b = ctx.binning
         grads, v_bg = kernels.composite_backward(
             *ctx.arrays, b.offsets, b.ids, b.width, b.height, b.tiles_x, b.tile_order, ctx.t_final, ctx.n_last,
-            _np64(v_image), _np64(v_alpha[..., 0]),
+            _grad64(v_image, (b.height, b.width, 3)), _grad64(None if v_alpha is None else v_alpha[..., 0],
+                                                             (b.height, b.width)),
         )
         n = ctx.arrays[0].shape[0]
-        per_g = torch.from_numpy(kernels.sum_per_gaussian(grads, b.ids, n))
-        grads = (per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5:8], per_g[:, 8], torch.from_numpy(v_bg))
-        return tuple(g.to(ctx.device, d) for g, d in zip(grads, ctx.dtypes)) + (None,)
+        per_g = kernels.sum_per_gaussian(grads, b.ids, n)
+        grads = (per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5:8], per_g[:, 8], v_bg)
+        return tuple(_tensor(g, ctx.device, d) for g, d in zip(grads, ctx.dtypes)) + (None,)
 
 
 class _Project(torch.autograd.Function):
@@ -79,6 +100,7 @@ class _Project(torch.autograd.Function):
         means2d, conics, depths, radii, visible, has_2d = kernels_project.project_forward(
             *arrays, _np64(opacities), view, intr, width, height
         )
+        ctx.set_materialize_grads(False)
         ctx.saved = (arrays, view, intr, width, height, conics, has_2d)
         ctx.dtypes = [t.dtype for t in (means, quats, scales)]
         ctx.device = means.device
@@ -87,17 +109,17 @@ class _Project(torch.autograd.Function):
         visible_t = torch.from_numpy(visible).to(dev)
         ctx.mark_non_differentiable(radii_t, visible_t)
         return (
-            torch.from_numpy(means2d).to(dev, dt), torch.from_numpy(conics).to(dev, dt),
-            torch.from_numpy(depths).to(dev, dt), radii_t, visible_t,
+            _tensor(means2d, dev, dt), _tensor(conics, dev, dt), _tensor(depths, dev, dt), radii_t, visible_t,
         )
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii, _v_visible):
         arrays, view, intr, width, height, conics, has_2d = ctx.saved
         grads = kernels_project.project_backward(
-            *arrays, view, intr, width, height, conics, has_2d, _np64(v_means2d), _np64(v_conics), _np64(v_depths)
+            *arrays, view, intr, width, height, conics, has_2d, _grad64(v_means2d, (len(conics), 2)),
+            _grad64(v_conics, conics.shape), _grad64(v_depths, (len(conics),)),
         )
-        out = tuple(torch.from_numpy(g).to(ctx.device, d) for g, d in zip(grads, ctx.dtypes))
+        out = tuple(_tensor(g, ctx.device, d) for g, d in zip(grads, ctx.dtypes))
         return out + (None, None, None, None, None)
 
 
