@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from rmavatar.utils import UserError
+from rmavatar.utils.device import constant
 
 # Values this far outside [0, 1] are treated as rounding noise, anything beyond is an error.
 _RANGE_TOL = 1e-4
@@ -113,9 +114,69 @@ def gaussian_window_1d(sigma: float = SSIM_SIGMA, radius: int = SSIM_RADIUS, dty
 
 
 @functools.lru_cache(maxsize=16)
-def _ssim_window(dtype, device) -> torch.Tensor:
-    """SSIM's taps, made once per dtype and device (a training loss asks every step); read-only."""
-    return gaussian_window_1d(dtype=dtype, device=device)
+def _ssim_windows(dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """SSIM's separable window for the 12 filtered maps of :class:`_SSIM`, made once per dtype and device
+    (a training loss asks every step); read-only: vertical [12,1,11,1], horizontal [12,1,1,11], and the
+    horizontal one with the six linear maps' taps doubled (d(mu^2)/d mu = 2 mu, folded into the backward)."""
+    win = 2 * SSIM_RADIUS + 1
+    g = gaussian_window_1d(dtype=dtype, device=device)
+    vertical = g.view(1, 1, win, 1).repeat(12, 1, 1, 1)
+    horizontal = g.view(1, 1, 1, win).repeat(12, 1, 1, 1)
+    doubled = horizontal.clone()
+    doubled[:6] *= 2
+    return vertical, horizontal, doubled
+
+
+class _SSIM(torch.autograd.Function):
+    """Mean SSIM map per image, x, y [B,3,H,W] -> [B], with the backward written out (a third of the
+    tensor operations autograd records for it).
+
+    With u = x + y and v = x - y, the SSIM factors are sums and differences of u's and v's moments:
+    2 A1 = mu_u^2 - mu_v^2 + 2 c1, 2 B1 = mu_u^2 + mu_v^2 + 2 c1 (A1 = 2 mu_x mu_y + c1,
+    B1 = mu_x^2 + mu_y^2 + c1), and 2 A2 = var_u - var_v + 2 c2, 2 B2 = var_u + var_v + 2 c2
+    (A2 = 2 cov_xy + c2, B2 = var_x + var_y + c2). So four maps (u, v, u^2, v^2 per channel) are
+    filtered instead of five, and every factor comes from one sum and one difference of z = (mu^2, var)
+    over (u, v): SSIM = minus_W minus_V / (plus_W plus_V)."""
+
+    @staticmethod
+    def forward(ctx, x, y):
+        b, c, h, w = x.shape
+        vertical, horizontal, doubled = _ssim_windows(x.dtype, x.device)
+        uv = torch.cat([x + y, x - y], 1)  # [B,6,H,W]
+        # 'valid' convolution: only windows that lie fully inside the image, the region the mean is over.
+        filt = F.conv2d(F.conv2d(torch.cat([uv, uv * uv], 1), vertical, groups=12), horizontal, groups=12)
+        f = filt.view(b, 2, 2, c, *filt.shape[2:])  # [B, (mean, mean of square), (u, v), 3, h, w]
+        mu = f[:, 0]
+        sq = mu * mu
+        z = torch.stack([sq, f[:, 1] - sq], 2) + constant(((2 * SSIM_K1**2, 2 * SSIM_K2**2), (0.0, 0.0)),
+                                                          x.dtype, x.device).view(1, 2, 2, 1, 1, 1)
+        plus, minus = z[:, 0] + z[:, 1], z[:, 0] - z[:, 1]  # [B, (W, V), 3, h, w]
+        den = plus.prod(1)
+        s = minus.prod(1) / den
+        ctx.save_for_backward(uv, mu, plus, minus, s, den)
+        ctx.windows = (vertical, doubled)
+        return s.mean(dim=(1, 2, 3))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        uv, mu, plus, minus, s, den = ctx.saved_tensors
+        vertical, doubled = ctx.windows
+        b, _, h, w = uv.shape
+        g = grad.view(-1, 1, 1, 1) * (1.0 / s[0].numel())  # d loss / d SSIM map
+        # dS/d minus_W = minus_V / den (not S / minus_W: minus may be 0), dS/d plus = -S / plus;
+        # plus = z_u + z_v and minus = z_u - z_v give dz_u = g_minus + g_plus, dz_v = g_plus - g_minus.
+        g_minus = minus.flip(1) * (g / den).unsqueeze(1)
+        sign = constant((1.0, -1.0), uv.dtype, uv.device).view(1, 2, 1, 1, 1, 1)
+        dz = g_minus.unsqueeze(1) * sign - ((g * s).unsqueeze(1) / plus).unsqueeze(1)  # [B,(u,v),(W,V),3,h,w]
+        # z = (mu^2, e - mu^2): d mu = 2 mu (dz_W - dz_V) (the 2 is in the doubled window), d e = dz_V.
+        d_filt = torch.stack([mu * (dz[:, :, 0] - dz[:, :, 1]), dz[:, :, 1]], 1).view(b, 12, *s.shape[-2:])
+        d_maps = F.conv_transpose2d(F.conv_transpose2d(d_filt, doubled, groups=12), vertical, groups=12)
+        d_maps = d_maps.view(b, 2, 2, -1, h, w)
+        d_uv = torch.addcmul(d_maps[:, 0], uv.view(b, 2, -1, h, w), d_maps[:, 1], value=2.0)  # [B,(u,v),3,H,W]
+        dx = d_uv[:, 0] + d_uv[:, 1] if ctx.needs_input_grad[0] else None
+        dy = d_uv[:, 0] - d_uv[:, 1] if ctx.needs_input_grad[1] else None
+        return dx, dy
 
 
 def ssim(a: Any, b: Any, *, check_range: bool = True):
@@ -124,29 +185,12 @@ def ssim(a: Any, b: Any, *, check_range: bool = True):
     The SSIM map is averaged over the pixels whose window lies inside the image and over the three
     channels, which is exactly what ``skimage.metrics.structural_similarity(a, b, gaussian_weights=True,
     sigma=1.5, use_sample_covariance=False, data_range=1, channel_axis=-1)`` reports. Images must be at
-    least 11x11. The Gaussian filter is applied separably (two 1D convolutions), so it is cheap enough to
-    be a training loss (``1 - ssim``).
+    least 11x11. The Gaussian filter is applied separably (two 1D convolutions) and the backward is
+    written out, so it is cheap enough to be a training loss (``1 - ssim``).
     """
     win = 2 * SSIM_RADIUS + 1
     ta, tb, batched, as_numpy = _prepare("ssim", a, b, check_range, min_side=win)
-    x = ta.permute(0, 3, 1, 2)  # [B,3,H,W]
-    y = tb.permute(0, 3, 1, 2)
-    # Filter the five moment maps in one grouped convolution: [B, 5*3, H, W].
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    channels = stack.shape[1]
-    g = _ssim_window(stack.dtype, stack.device)
-    # 'valid' convolution: only windows that lie fully inside the image, the region the mean is over.
-    filt = F.conv2d(stack, g.view(1, 1, win, 1).expand(channels, 1, win, 1), groups=channels)
-    filt = F.conv2d(filt, g.view(1, 1, 1, win).expand(channels, 1, 1, win), groups=channels)
-    mu_x, mu_y, e_xx, e_yy, e_xy = filt.chunk(5, dim=1)
-    var_x = e_xx - mu_x * mu_x
-    var_y = e_yy - mu_y * mu_y
-    cov_xy = e_xy - mu_x * mu_y
-    c1 = SSIM_K1**2
-    c2 = SSIM_K2**2
-    num = (2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)
-    den = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
-    return _finish((num / den).mean(dim=(1, 2, 3)), batched, as_numpy)
+    return _finish(_SSIM.apply(ta.permute(0, 3, 1, 2), tb.permute(0, 3, 1, 2)), batched, as_numpy)
 
 
 def lpips(a: Any, b: Any, *, check_range: bool = True, net: torch.nn.Module | None = None):
