@@ -240,29 +240,37 @@ if __name__ == "__main__":
     np.savez(sys.argv[1], **{f"{k}_{s}": v for k, ab in make_pairs().items() for s, v in zip("ab", ab)})
 
 
-def test_layer_distance_matches_autograd_of_the_plain_formula():
-    """The hand-written backward of a layer's distance against autograd of the formula (float64), on
-    features with all-zero pixels (ReLU outputs), gradients for both images."""
+def test_distance_matches_autograd_of_the_plain_formula():
+    """The hand-written backward of the distance (all five layers) against autograd of the formula
+    (float64), on features of different sizes with all-zero pixels (ReLU outputs), gradients for both
+    images."""
     import torch
     import torch.nn.functional as F
 
-    from rmavatar.evaluate.lpips_net import _LayerDistance
+    from rmavatar.evaluate.lpips_net import _Distance
 
     gen = torch.Generator().manual_seed(1)
-    fx, fy = (torch.randn(2, 16, 7, 9, generator=gen, dtype=torch.float64).relu() for _ in range(2))
-    fx[:, :, 0, 0] = 0.0
-    fy[:, :, 1, 1] = 0.0
-    fx.requires_grad_(True), fy.requires_grad_(True)
-    weight = torch.rand(1, 16, 1, 1, generator=gen, dtype=torch.float64)
-    nx = fx / (torch.linalg.vector_norm(fx, dim=1, keepdim=True) + 1e-10)
-    ny = fy / (torch.linalg.vector_norm(fy, dim=1, keepdim=True) + 1e-10)
-    plain = F.conv2d((nx - ny).square(), weight).mean(dim=(1, 2, 3))
-    ours = _LayerDistance.apply(fx, fy, weight)
-    assert torch.equal(ours, plain)
+    shapes = [(16, 7, 9), (8, 4, 5), (4, 2, 3)]
+    fx = [torch.randn(2, *s, generator=gen, dtype=torch.float64).relu() for s in shapes]
+    fy = [torch.randn(2, *s, generator=gen, dtype=torch.float64).relu() for s in shapes]
+    fx[0][:, :, 0, 0] = 0.0
+    fy[1][:, :, 1, 1] = 0.0
+    for f in fx + fy:
+        f.requires_grad_(True)
+    heads = [torch.rand(1, s[0], 1, 1, generator=gen, dtype=torch.float64) for s in shapes]
+    plain = 0
+    for a, b, w in zip(fx, fy, heads):
+        na = a / (torch.linalg.vector_norm(a, dim=1, keepdim=True) + 1e-10)
+        nb = b / (torch.linalg.vector_norm(b, dim=1, keepdim=True) + 1e-10)
+        plain = plain + F.conv2d((na - nb).square(), w).mean(dim=(1, 2, 3))
+    weights = torch.cat([w.flatten() / (s[1] * s[2]) for w, s in zip(heads, shapes)])
+    ours = _Distance.apply(weights, 2 * weights, *fx, *fy)
+    torch.testing.assert_close(ours, plain, rtol=1e-13, atol=0)
     grad = torch.tensor([0.7, -1.3], dtype=torch.float64)
-    for a, b in zip(torch.autograd.grad(ours, (fx, fy), grad), torch.autograd.grad(plain, (fx, fy), grad)):
+    for a, b in zip(torch.autograd.grad(ours, fx + fy, grad), torch.autograd.grad(plain, fx + fy, grad)):
         assert torch.isfinite(a).all()
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
     # and against finite differences where the norm is differentiable (no all-zero pixel)
-    smooth = (fx.detach() + 0.1).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda x: _LayerDistance.apply(x, fy.detach(), weight), (smooth,))
+    smooth = [(f.detach() + 0.1).requires_grad_(True) for f in fx]
+    fixed = [f.detach() for f in fy]
+    assert torch.autograd.gradcheck(lambda *x: _Distance.apply(weights, 2 * weights, *x, *fixed), smooth)

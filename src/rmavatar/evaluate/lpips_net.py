@@ -44,22 +44,25 @@ SCALE = (0.458, 0.448, 0.450)
 class LPIPSAlex(nn.Module):
     """LPIPS v0.1 distance with the AlexNet backbone; frozen, in eval mode.
 
-    ``forward(x [B,3,H,W], y [B,3,H,W]) -> [B]`` with x, y in [-1, 1]. Differentiable w.r.t. x and y.
+    ``forward(x [B,3,H,W], y [B,3,H,W]) -> [B]`` with x, y in [0, 1]. Differentiable w.r.t. x and y.
     """
 
     def __init__(self) -> None:
         super().__init__()
         self.convs = nn.ModuleList(nn.Conv2d(i, o, k, stride=s, padding=p) for i, o, k, s, p in ALEX_CONVS)
         self.heads = nn.ModuleList(nn.Conv2d(o, 1, 1, bias=False) for _, o, _, _, _ in ALEX_CONVS)
-        # Constants of the method, not weights: kept out of the state dict and the cache file.
-        self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
+        # Constants of the method, not weights: kept out of the state dict and the cache file. The map
+        # [0, 1] -> [-1, 1] and LPIPS's normalisation (z - shift) / scale as one multiply-add per image.
+        shift, scale = torch.tensor(SHIFT, dtype=torch.float64), torch.tensor(SCALE, dtype=torch.float64)
+        self.register_buffer("gain", (2 / scale).float().view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("offset", (-(1 + shift) / scale).float().view(1, 3, 1, 1), persistent=False)
+        self._head_weights: dict = {}
         self.requires_grad_(False)
         self.eval()
 
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """The five ReLU outputs of AlexNet for ``x [B,3,H,W]`` in [-1, 1]."""
-        x = (x - self.shift) / self.scale
+        """The five ReLU outputs of AlexNet for ``x [B,3,H,W]`` in [0, 1]."""
+        x = torch.addcmul(self.offset, x, self.gain)
         taps = []
         for i, conv in enumerate(self.convs):
             x = F.relu(conv(x))
@@ -68,43 +71,77 @@ class LPIPSAlex(nn.Module):
                 x = F.max_pool2d(x, kernel_size=3, stride=2)
         return taps
 
+    def head_weights(self, taps: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The five heads' weights in one vector [sum of channels], each divided by its layer's pixel
+        count (the heads' outputs are averaged over pixels), and twice that (for the backward); made once
+        per image size, dtype and device."""
+        key = tuple(t.shape[2:] for t in taps) + (taps[0].dtype, taps[0].device)
+        if key not in self._head_weights:
+            with torch.no_grad():
+                w = torch.cat([head.weight.flatten() / (t.shape[2] * t.shape[3]) for head, t in zip(self.heads, taps)])
+                self._head_weights[key] = (w, 2 * w)
+        return self._head_weights[key]
+
+    def _apply(self, fn, recurse=True):
+        self._head_weights = {}  # derived from the heads, which .to() / .double() replace
+        return super()._apply(fn, recurse)
+
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        layers = [_LayerDistance.apply(fx, fy, head.weight)
-                  for fx, fy, head in zip(self.features(x), self.features(y), self.heads)]
-        return torch.stack(layers).sum(0)
+        fx, fy = self.features(x), self.features(y)
+        return _Distance.apply(*self.head_weights(fx), *fx, *fy)
 
 
-class _LayerDistance(torch.autograd.Function):
-    """One LPIPS layer: mean over pixels of head((fx / (|fx| + 1e-10) - fy / (|fy| + 1e-10))^2), [B].
+class _Distance(torch.autograd.Function):
+    """LPIPS from the five layers' features: sum over layers of the mean over pixels of
+    sum_c w_c (ux - uy)_c^2, with u = f / (|f| + 1e-10) per pixel;
+    (weights [sum C], 2 weights, fx_1..5, fy_1..5) -> [B]. ``weights`` are the heads divided by each
+    layer's pixel count (``LPIPSAlex.head_weights``).
 
-    The backward is written out (the normalisation's Jacobian is g / (n + e) - u (u . g) / n, with
-    u the normalised feature and n its norm): a third of the operations autograd records for it."""
+    The backward is written out (the normalisation's Jacobian is g / (n + e) - u (u . g) / n, with u the
+    normalised feature and n its norm): a third of the operations autograd records for it."""
 
     @staticmethod
-    def forward(ctx, fx, fy, weight):
-        if weight.requires_grad:
+    def forward(ctx, weights, weights2, *feats):
+        if weights.requires_grad:
             raise RuntimeError("LPIPS's heads are frozen: their gradient is not written out")
-        nx = torch.linalg.vector_norm(fx, dim=1, keepdim=True)
-        ny = torch.linalg.vector_norm(fy, dim=1, keepdim=True)
-        dx, dy = nx + 1e-10, ny + 1e-10
-        ux, uy = fx / dx, fy / dy
-        d = ux - uy
-        ctx.save_for_backward(weight, d, ux, nx, dx, uy, ny, dy)
-        return F.conv2d(d.square(), weight).mean(dim=(1, 2, 3))
+        layers = len(feats) // 2
+        b = feats[0].shape[0]
+        saved, sums = [], []
+        for fx, fy in zip(feats[:layers], feats[layers:]):
+            f = torch.cat([fx, fy])  # both images' features normalised in one go
+            n = torch.linalg.vector_norm(f, dim=1, keepdim=True)
+            denom = n + 1e-10
+            u = f / denom
+            d = (u[:b] - u[b:]).flatten(2)  # [B,C,HW]
+            sums.append((d.unsqueeze(2) @ d.unsqueeze(3)).flatten(1))  # [B,C]: sum over pixels of d^2
+            saved += [d, u, n, denom]
+        ctx.save_for_backward(weights2, *saved)
+        return torch.cat(sums, 1) @ weights
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        weight, d, ux, nx, dx, uy, ny, dy = ctx.saved_tensors
-        # d/dd of mean_hw sum_c w_c d_c^2, times the incoming gradient per image
-        g = d * (weight * (2.0 / (d.shape[2] * d.shape[3]))) * grad.view(-1, 1, 1, 1)
-        tiny = torch.finfo(d.dtype).tiny  # where |f| = 0, u = 0 and the second term is 0 (as autograd's)
+        weights2, *saved = ctx.saved_tensors
+        layers = len(saved) // 4
+        b = grad.shape[0]
+        # d/dd of sum_c w_c sum_hw d_c^2 per image, times the incoming gradient: 2 w_c grad_b d
+        gw = grad[:, None] * weights2  # [B, sum C]
+        gx, gy, start = [], [], 0
+        tiny = torch.finfo(grad.dtype).tiny  # where |f| = 0, u = 0 and the second term is 0 (as autograd's)
+        for i in range(layers):
+            d, u, n, denom = saved[4 * i: 4 * i + 4]
+            c = d.shape[1]
+            g = (d * gw[:, start:start + c, None]).view(b, c, *u.shape[2:])
+            start += c
 
-        def through_norm(g_u, u, n, denom):
-            return g_u / denom - u * ((u * g_u).sum(1, keepdim=True) / n.clamp_min(tiny))
+            def through_norm(g_u, half):
+                u_h, n_h = u[half], n[half]
+                dot = torch.einsum("bchw,bchw->bhw", u_h, g_u).unsqueeze(1)  # u . g per pixel, one kernel
+                return torch.addcmul(g_u / denom[half], u_h, dot / n_h.clamp_min(tiny), value=-1.0)
 
-        gx = through_norm(g, ux, nx, dx) if ctx.needs_input_grad[0] else None
-        gy = through_norm(-g, uy, ny, dy) if ctx.needs_input_grad[1] else None
-        return gx, gy, None
+            gx.append(through_norm(g, slice(0, b)) if ctx.needs_input_grad[2 + i] else None)
+            gy.append(through_norm(-g, slice(b, None)) if ctx.needs_input_grad[2 + layers + i] else None)
+        return (None, None, *gx, *gy)
 
 
 def _package_dir(name: str) -> Path:

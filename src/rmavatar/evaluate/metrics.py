@@ -88,7 +88,7 @@ def _prepare(name: str, a: Any, b: Any, check_range: bool, min_side: int = 1):
 def _finish(values: torch.Tensor, batched: bool, as_numpy: bool):
     """``values [B]`` -> tensor/float/array as the module docstring promises."""
     if not batched:
-        values = values[0]
+        values = values.squeeze(0)  # a view whose backward is a view too (indexing's makes a zero tensor)
     if as_numpy:
         out = values.detach().cpu().numpy().astype(np.float64)
         return float(out) if not batched else out
@@ -194,7 +194,7 @@ def ssim(a: Any, b: Any, *, check_range: bool = True):
 
 
 def lpips(a: Any, b: Any, *, check_range: bool = True, net: torch.nn.Module | None = None):
-    """LPIPS v0.1 with the AlexNet backbone; images are mapped from [0, 1] to [-1, 1] internally.
+    """LPIPS v0.1 with the AlexNet backbone (which maps images from [0, 1] to [-1, 1] internally).
 
     ``net`` is an :class:`rmavatar.evaluate.lpips_net.LPIPSAlex`; by default the one for the input's
     device and dtype is loaded from the user cache (converted there on first use) and kept for reuse.
@@ -209,7 +209,5 @@ def lpips(a: Any, b: Any, *, check_range: bool = True, net: torch.nn.Module | No
         ta, tb = ta.float(), tb.float()
     if net is None:
         net = load_lpips(ta.device, ta.dtype)
-    x = ta.permute(0, 3, 1, 2) * 2 - 1
-    y = tb.permute(0, 3, 1, 2) * 2 - 1
-    return _finish(net(x, y), batched, as_numpy)
+    return _finish(net(ta.permute(0, 3, 1, 2), tb.permute(0, 3, 1, 2)), batched, as_numpy)
 
