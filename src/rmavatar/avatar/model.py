@@ -314,13 +314,24 @@ class Avatar(nn.Module):
     def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
         """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
         from ``_posed`` (computed when None)."""
-        slot = self._face_slot() if slot is None else slot
-        R, w, M = self.rest_frames[slot], self.rest_scales[slot], self.rest_centroids[slot]
-        return w.unsqueeze(-1) * (R @ self.means.unsqueeze(-1)).squeeze(-1) + M
+        wR, M, _ = self._local_inputs(self._face_slot() if slot is None else slot)
+        return torch.baddbmm(M.unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
+
+    def _local_inputs(self, slot: torch.Tensor):
+        """Per-Gaussian constants of the local rectifier: the rest frames as w R [N,3,3], the rest
+        centroids [N,3] and the pose-mask groups [N]; gathered once per ``slot`` (density control makes a
+        new one) and buffer set (``.to()`` replaces them), not on every step."""
+        key = (slot, self.rest_frames, self.rest_scales, self.rest_centroids, getattr(self, "face_pose_group", None))
+        cached = getattr(self, "_local_cache", None)
+        if cached is None or any(a is not b for a, b in zip(cached[0], key)):
+            wR = self.rest_scales[slot, None, None] * self.rest_frames[slot]
+            group = None if key[-1] is None else self.face_pose_group[self.face_ids]
+            cached = self._local_cache = (key, (wR, self.rest_centroids[slot], group))
+        return cached[1]
 
     def _posed(self, vertices: torch.Tensor):
-        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3] and scale w [N], and its
-        index into the binding faces, slot [N]."""
+        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3], scale w [N] and w R [N,3,3],
+        and its index into the binding faces, slot [N]."""
         if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
             raise ValueError(
                 f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
@@ -340,7 +351,7 @@ class Avatar(nn.Module):
         r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
         r_star = (g[:, 22:38].unflatten(-1, (4, 4)) @ r.unsqueeze(-1)).squeeze(-1)
         s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
-        return mu_star, r_star, s_star, frames, w, slot
+        return mu_star, r_star, s_star, frames, w, wR, slot
 
     def _face_slot(self) -> torch.Tensor:
         """Index of every Gaussian's face in ``binding_faces`` [N]; computed (and checked, a host sync)
@@ -370,7 +381,7 @@ class Avatar(nn.Module):
             raise ValueError("this avatar has no rectifier")
         if self.config.rectifier == "local":
             return self._rectify(None, self._face_slot(), body_pose)
-        mu, _, _, _, _, slot = self._posed(vertices)
+        mu, _, _, _, _, _, slot = self._posed(vertices)
         return self._rectify(mu, slot, body_pose)
 
     def _rectify(self, mu: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
@@ -380,7 +391,7 @@ class Avatar(nn.Module):
         if body_pose.numel() != POSE_DIM:
             raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
         if self.config.rectifier == "local":
-            group = self.face_pose_group[self.face_ids]
+            group = self._local_inputs(slot)[2]
             return self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
         return self.rectifier(mu, body_pose)
 
@@ -390,13 +401,13 @@ class Avatar(nn.Module):
         pose input; may be None only without a rectifier, or with ``rectified``); rectified: the
         rectifier's raw outputs from :meth:`rectify` to use instead of running it (test-time pose
         fitting holds them fixed between refreshes)."""
-        mu, r, s, frames, w, slot = self._posed(vertices)
+        mu, r, s, frames, w, wR, slot = self._posed(vertices)
         offsets = None
         if self.rectifier is not None:
             d_mu, d_s, d_r = rectified if rectified is not None else self._rectify(mu, slot, body_pose)
             if self.config.rectifier == "local":
                 # from the triangle's frame (units of w) to world space: turns and scales with it
-                d_mu = w.unsqueeze(-1) * (frames @ d_mu.unsqueeze(-1)).squeeze(-1)
+                d_mu = (wR @ d_mu.unsqueeze(-1)).squeeze(-1)
                 d_s = w.unsqueeze(-1) * d_s
             mu = mu + d_mu
             dq = d_r + quat_identity(d_r.dtype, d_r.device)
