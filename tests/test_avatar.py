@@ -279,6 +279,29 @@ def test_positional_encoding_values():
     assert window_alpha(0, 10, 20, 6) == 0.0 and window_alpha(15, 10, 20, 6) == 3.0 and window_alpha(99, 10, 20, 6) == 6.0
 
 
+def test_positional_encoding_gradient_matches_autograd_of_the_formula():
+    # The written-out backward (and the host-made window) against autograd through sin/cos, float64.
+    from rmavatar.avatar.rectifier import window_values
+
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(50, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    grad = torch.randn(50, 36, generator=gen, dtype=torch.float64)
+    r = Rectifier().double()
+    for alpha in (6.0, 2.5, 0.0):
+        window = torch.tensor(window_values(6, alpha), dtype=torch.float64)
+        xb = (x.unsqueeze(-2) * (2.0 ** torch.arange(6.0, dtype=torch.float64)).unsqueeze(-1)).flatten(-2)
+        wb = window.repeat_interleave(3)
+        plain = torch.cat((torch.sin(xb) * wb, torch.cos(xb) * wb), -1)
+        r.set_frequency_alpha(alpha)
+        for ours in (positional_encoding(x, 6, window), r.encode(x)):
+            torch.testing.assert_close(ours, plain, rtol=0, atol=1e-15)
+            (a,), (b,) = torch.autograd.grad(ours, x, grad), torch.autograd.grad(plain, x, grad, retain_graph=True)
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert window_values(6, 2.5) == pytest.approx([1, 1, 0.5, 0, 0, 0])
+    half_open = torch.tensor(window_values(4, 2.5), dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda v: positional_encoding(v, 4, half_open), (x[:5].detach().requires_grad_(),))
+
+
 def test_rectifier_shapes_and_fast_path_matches_plain_mlp():
     r = Rectifier().double()
     assert r.in_dim == 105
