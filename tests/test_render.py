@@ -220,6 +220,35 @@ def test_sh_basis_matches_scipy_real_harmonics():
             col += 1
 
 
+def test_sh_colors_match_the_basis_formula():
+    """The colours from the monomial table (and their gradients w.r.t. the coefficients and the
+    positions) equal the per-term basis of sh_basis, float64, for every degree; view_colors too."""
+    from rmavatar.render.project import sh_to_rgb, view_colors
+
+    g = torch.Generator().manual_seed(1)
+    means = torch.randn(40, 3, generator=g, dtype=F64, requires_grad=True)
+    sh = torch.randn(40, 16, 3, generator=g, dtype=F64, requires_grad=True)
+    campos = torch.tensor([0.3, -0.2, 2.5], dtype=F64)
+    frames = torch.linalg.qr(torch.randn(40, 3, 3, generator=g, dtype=F64)).Q
+    viewmat = torch.eye(4, dtype=F64)
+    viewmat[:3, 3] = torch.tensor([0.1, 0.2, 3.0], dtype=F64)
+    cam = -viewmat[:3, 3]
+    grad = torch.randn(40, 3, generator=g, dtype=F64)
+    for degree in range(4):
+        k = (degree + 1) ** 2
+        for ours, dirs in ((sh_to_rgb(sh, degree, means, campos), means - campos),
+                           (view_colors(sh, degree, means, viewmat, frames),
+                            torch.einsum("nji,nj->ni", frames, means - cam))):
+            plain = torch.clamp_min((sh_basis(degree, dirs)[:, :, None] * sh[:, :k]).sum(1) + 0.5, 0.0)
+            torch.testing.assert_close(ours, plain, rtol=0, atol=1e-13)
+            for a, b in zip(torch.autograd.grad(ours, (means, sh), grad, allow_unused=True),
+                            torch.autograd.grad(plain, (means, sh), grad, allow_unused=True)):
+                if b is None or a is None:  # degree 0: no dependence on the position
+                    assert degree == 0 and (a is None or not a.any()) and (b is None or not b.any())
+                else:
+                    torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
 def test_gsplat_backend_without_gsplat_is_a_clear_error():
     pytest.importorskip("torch")
     try:

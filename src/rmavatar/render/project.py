@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from rmavatar.utils.device import constant
+
 EPS2D = 0.3  # low-pass dilation added to the 2D covariance diagonal (pixels^2)
 NEAR_PLANE = 0.01
 FAR_PLANE = 1e10
@@ -150,12 +152,55 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
+# The basis functions of bands 1..3 as polynomials in the unit direction (x, y, z): per basis index,
+# (coefficient, monomial) terms, as in sh_basis.
+_SH_POLYNOMIALS = {
+    1: [(-_C1, "y")], 2: [(_C1, "z")], 3: [(-_C1, "x")],
+    4: [(_C2[0], "xy")], 5: [(_C2[1], "yz")], 6: [(2 * _C2[2], "zz"), (-_C2[2], "xx"), (-_C2[2], "yy")],
+    7: [(_C2[3], "xz")], 8: [(_C2[4], "xx"), (-_C2[4], "yy")],
+    9: [(3 * _C3[0], "xxy"), (-_C3[0], "yyy")], 10: [(_C3[1], "xyz")],
+    11: [(4 * _C3[2], "yzz"), (-_C3[2], "xxy"), (-_C3[2], "yyy")],
+    12: [(2 * _C3[3], "zzz"), (-3 * _C3[3], "xxz"), (-3 * _C3[3], "yyz")],
+    13: [(4 * _C3[4], "xzz"), (-_C3[4], "xxx"), (-_C3[4], "xyy")],
+    14: [(_C3[5], "xxz"), (-_C3[5], "yyz")], 15: [(_C3[6], "xxx"), (-3 * _C3[6], "xyy")],
+}
+
+
+def _sh_table(degree: int) -> tuple:
+    """[4^degree, (degree+1)^2]: the products of ``degree`` factors of (1, x, y, z) (flattened, first
+    factor slowest) times this table are the SH basis values; each monomial is read from one product."""
+    k = (degree + 1) ** 2
+    table = [[0.0] * k for _ in range(4**degree)]
+    table[0][0] = _C0  # 1 * 1 * ... * 1
+    for j in range(1, k):
+        for coef, mono in _SH_POLYNOMIALS[j]:
+            factors = [0] * (degree - len(mono)) + ["_xyz".index(v) for v in mono]
+            table[sum(f * 4 ** (degree - 1 - i) for i, f in enumerate(factors))][j] += coef
+    return tuple(map(tuple, table))
+
+
+def _sh_colors(sh: Tensor, degree: int, dirs: Tensor) -> Tensor:
+    """``max(SH(dirs) . sh + 0.5, 0)`` [N,3] for directions [N,3] (normalised here).
+
+    The basis is one matrix product of the direction's monomials (products of (1, x, y, z), two
+    broadcast multiplies for band 3) with a constant table, and the colour one batched product: a few
+    tensor operations instead of one per basis term (about 190 forward and backward for band 3)."""
+    if degree == 0:  # a constant basis: the direction does not matter
+        return torch.clamp_min(sh[:, 0] * _C0 + 0.5, 0.0)
+    k = (degree + 1) ** 2
+    d = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True).clamp_min(1e-12)
+    m = torch.nn.functional.pad(d, (1, 0), value=1.0)  # [N,4]: 1, x, y, z
+    mono = m
+    for _ in range(degree - 1):
+        mono = (mono.unsqueeze(-1) * m.unsqueeze(-2)).flatten(-2)  # [N, 4^degree]
+    basis = mono @ constant(_sh_table(degree), mono.dtype, mono.device)  # [N,K]
+    return torch.clamp_min((basis.unsqueeze(-2) @ sh[:, :k, :]).squeeze(-2) + 0.5, 0.0)
+
+
 def sh_to_rgb(sh: Tensor, degree: int, means: Tensor, campos: Tensor) -> Tensor:
     """RGB [N,3] seen from ``campos`` [3]: SH coefficients sh [N,K,3] (K >= (degree+1)^2) evaluated
     along the camera->Gaussian direction, then ``max(value + 0.5, 0)`` as gsplat does."""
-    k = (degree + 1) ** 2
-    basis = sh_basis(degree, means - campos)
-    return torch.clamp_min((basis[:, :, None] * sh[:, :k, :]).sum(1) + 0.5, 0.0)
+    return _sh_colors(sh, degree, means - campos)
 
 
 def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames: Tensor | None = None) -> Tensor:
@@ -164,12 +209,14 @@ def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames:
     ``frames`` [N,3,3] (local -> world rotations) says the coefficients are expressed in per-Gaussian
     local axes: the view direction is turned into them first. None: world axes, as in a 3DGS file.
     """
+    if degree == 0:
+        return _sh_colors(sh, 0, means)
     viewmat = viewmat.to(means)
     campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
     dirs = means - campos
     if frames is not None:
         dirs = torch.einsum("nji,nj->ni", frames, dirs)  # R^T d
-    return sh_to_rgb(sh, degree, dirs, torch.zeros_like(campos))
+    return _sh_colors(sh, degree, dirs)
 
 
 def _sample_dirs(n: int) -> torch.Tensor:
