@@ -45,6 +45,7 @@ from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
 from rmavatar.train.losses import total_loss
 from rmavatar.data.checks import check_files
 from rmavatar.utils import UserError, atomic_path, check_writable_folder, resolve_device
+from rmavatar.utils.device import constant
 
 
 # ----------------------------------------------------------------------------------------------- small parts
@@ -95,19 +96,21 @@ class FrameSampler:
         self._perm = self._permutation(self.epoch)
 
 
-def background_color(kind: str, generator: torch.Generator) -> torch.Tensor:
-    """Background [3] for one step: white, black, or a random colour per step (drawn from ``generator``)."""
+def background_color(kind: str, generator: torch.Generator, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Background [3] on ``device`` for one step: white, black (shared read-only constants, not made and
+    uploaded every step), or a random colour per step (drawn from ``generator``, on the CPU)."""
     if kind == "white":
-        return torch.ones(3)
+        return constant((1.0, 1.0, 1.0), torch.float32, device)
     if kind == "black":
-        return torch.zeros(3)
-    return torch.rand(3, generator=generator)
+        return constant((0.0, 0.0, 0.0), torch.float32, device)
+    return torch.rand(3, generator=generator).to(device, non_blocking=True)
 
 
 def composite_target(image: torch.Tensor, mask: torch.Tensor, bg: torch.Tensor) -> torch.Tensor:
-    """target = image * mask + bg * (1 - mask); image [H,W,3], mask [H,W], bg [3] -> [H,W,3]."""
-    m = mask.unsqueeze(-1)
-    return image * m + bg * (1.0 - m)
+    """target = image * mask + bg * (1 - mask); image [H,W,3], mask [H,W], bg [3] -> [H,W,3].
+
+    As one lerp (bg + mask (image - bg), exact where the mask is 0 or 1) rather than four operations."""
+    return torch.lerp(bg, image, mask.unsqueeze(-1))
 
 
 def resolve_body(cfg: TrainConfig, dataset) -> tuple[str, str | None]:
@@ -380,7 +383,7 @@ class Trainer:
                 group["lr"] = lr
         self.avatar.set_progress(it, cfg.optim.iters)
         i = self.sampler.next()
-        bg = background_color(cfg.background, self.bg_generator).to(self.device, non_blocking=True)
+        bg = background_color(cfg.background, self.bg_generator, self.device)
         target = self.target(i, bg)
         gs = self.avatar(*self.frame_body(i, it))
         image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
@@ -393,19 +396,20 @@ class Trainer:
         # Checked on the device, in one reduction: the Gaussians (the rasterizer culls non-finite ones
         # instead of refusing them), the loss and every gradient.
         ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
-        self._optimizer_step(ok)
+        bad = (~ok).to(torch.float32)  # 1.0 for a skipped step: the optimiser's found_inf and the guard's count
+        self._optimizer_step(ok, bad)
         self.optimizer.zero_grad(set_to_none=True)
         if self.poses is not None:
             self.poses.step(i, it, ok)
         events = self.density.after_step(it, info, self.width, self.height, valid=ok)
-        self._guard.update(ok)
+        self._guard.update(bad)
         return {"ok": ok, "loss": loss.detach(), **parts, "frame": i, "lr_position": lr, "events": events,
                 "image": image.detach(), "target": target}
 
-    def _optimizer_step(self, ok: torch.Tensor) -> None:
+    def _optimizer_step(self, ok: torch.Tensor, bad: torch.Tensor) -> None:
         if self.optimizer.defaults.get("fused"):
             self.optimizer.grad_scale = None
-            self.optimizer.found_inf = (~ok).to(torch.float32)
+            self.optimizer.found_inf = bad
             self.optimizer.step()
         elif bool(ok):  # an optimiser without device-side skipping: one sync
             self.optimizer.step()
@@ -587,8 +591,9 @@ class _NonFiniteGuard:
         self.run = torch.zeros((), device=device)  # current streak
         self.longest = torch.zeros((), device=device)  # longest streak since the last check
 
-    def update(self, ok: torch.Tensor) -> None:
-        bad = (~ok).to(self.run.dtype)
+    def update(self, bad: torch.Tensor) -> None:
+        """``bad``: 1.0 for a skipped step, 0.0 for an applied one (a float tensor on the device)."""
+        bad = bad.to(self.run.dtype)
         self.skipped += bad
         self.run.add_(1.0).mul_(bad)
         torch.maximum(self.longest, self.run, out=self.longest)
