@@ -135,3 +135,24 @@ def test_total_loss_equals_the_plain_weighted_sum_in_float64():
     inputs = (render, g.local_means, g.local_log_scales, *g.offsets)
     for a, b in zip(torch.autograd.grad(loss, inputs), torch.autograd.grad(plain, inputs)):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(b.abs().max()))
+
+
+def test_fused_regularisers_match_the_three_definitions():
+    """The one-Function regularisers against position_loss / scaling_loss / offset_loss (float64, rows
+    with |mu| = 0, below and above eps, scales below and above eps), and finite differences."""
+    from rmavatar.train.losses import _Regularisers
+
+    gen = torch.Generator().manual_seed(5)
+    mu = torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    mu[0] = 0.0
+    log_s = torch.randn(30, 3, generator=gen, dtype=torch.float64) * 0.5 - 0.5
+    off = [torch.randn(30, k, generator=gen, dtype=torch.float64) * 0.1 for k in (3, 3, 4)]
+    inputs = [t.requires_grad_(True) for t in (mu, log_s, *off)]
+    fused = _Regularisers.apply(*inputs, 0.8, 0.6)
+    plain = torch.stack((position_loss(mu, 0.8), scaling_loss(log_s, 0.6), offset_loss(*off)))
+    torch.testing.assert_close(fused, plain, rtol=1e-13, atol=0)
+    grad = torch.tensor([0.3, -1.1, 2.0], dtype=torch.float64)
+    for a, b in zip(torch.autograd.grad(fused, inputs, grad), torch.autograd.grad(plain, inputs, grad)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+    mu_smooth = (mu.detach() + 0.05).requires_grad_(True)  # no |mu| = 0 row: the norm is differentiable
+    assert torch.autograd.gradcheck(lambda *t: _Regularisers.apply(*t, 0.8, 0.6), (mu_smooth, *inputs[1:]))

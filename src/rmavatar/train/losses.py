@@ -12,6 +12,7 @@ the public release computes it (one mean per offset kind, summed).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -58,6 +59,60 @@ def offset_loss(d_mu: torch.Tensor, d_s: torch.Tensor, d_r: torch.Tensor) -> tor
     return d_mu.square().mean() + d_r.square().mean() + d_s.square().mean()
 
 
+class _Regularisers(torch.autograd.Function):
+    """(L_pos, L_scaling, L_offset) [3] in one go, with the backward written out (about half the
+    operations autograd records for the three functions above, which define them).
+
+    (local_means [N,3], local_log_scales [N,3], d_mu [N,3], d_s [N,3], d_r [N,4], eps_pos, eps_scaling)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling):
+        n = torch.linalg.vector_norm(means, dim=-1)
+        excess = torch.relu(n - eps_pos)
+        e = torch.exp(log_scales)
+        over = torch.relu(e - eps_scaling)
+        over_norm = torch.linalg.vector_norm(over, dim=-1)
+        offsets = torch.cat((d_mu, d_s, d_r), dim=-1)  # [N,10]
+        # per-Gaussian sums, then one product with the weights that make each term's mean
+        parts = torch.cat((excess.sum().view(1), over_norm.sum().view(1),
+                           torch.einsum("ni,ni->i", offsets, offsets)))  # [12]
+        weights, _ = _regulariser_weights(means.shape[0], (d_mu.shape[1], d_s.shape[1], d_r.shape[1]),
+                                          means.dtype, means.device)
+        ctx.save_for_backward(means, n, excess, e, over, over_norm, offsets)
+        ctx.widths = (d_mu.shape[1], d_s.shape[1], d_r.shape[1])
+        return weights @ parts
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        means, n, excess, e, over, over_norm, offsets = ctx.saved_tensors
+        _, backward_weights = _regulariser_weights(means.shape[0], ctx.widths, means.dtype, means.device)
+        c = torch.mv(backward_weights, grad)  # [12]: d loss / d each per-Gaussian sum, times 2 for the squares
+        tiny = torch.finfo(n.dtype).tiny  # |mu| = 0 or |over| = 0: that Gaussian's term has no gradient
+        # d|mu|/dmu = mu / |mu| where |mu| > eps_pos (sign(excess) is that mask)
+        g_means = means * (torch.sign(excess) / n.clamp_min(tiny) * c[0]).unsqueeze(-1)
+        # d|over|/dlog_s = over / |over| * e (over = 0 where the relu is off)
+        g_scales = over * e / over_norm.clamp_min(tiny).unsqueeze(-1) * c[1]
+        g_off = (offsets * c[2:]).split(ctx.widths, dim=-1)  # d(x^2) = 2 x, the 2 in backward_weights
+        return g_means, g_scales, *g_off, None, None
+
+
+@functools.lru_cache(maxsize=32)
+def _regulariser_weights(n: int, widths: tuple, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """[3,12] weights from _Regularisers' per-Gaussian sums to (L_pos, L_scaling, L_offset): 1/N for the
+    first two, 1/(N * width) for each offset column; and their transpose [12,3] for the backward, with
+    the offset rows doubled. Made once per Gaussian count (density control changes it)."""
+    rows = [[0.0] * (2 + sum(widths)) for _ in range(3)]
+    rows[0][0] = rows[1][1] = 1.0 / n
+    col = 2
+    for width in widths:
+        for _ in range(width):
+            rows[2][col] = 1.0 / (n * width)
+            col += 1
+    doubled = [[v if i < 2 else 2 * v for v in column] for i, column in enumerate(zip(*rows))]
+    return (torch.tensor(rows, dtype=dtype, device=device), torch.tensor(doubled, dtype=dtype, device=device))
+
+
 def _default_ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     from rmavatar.evaluate import ssim
 
@@ -99,12 +154,20 @@ def total_loss(
         terms["ssim"] = 1.0 - (ssim_fn or _default_ssim)(render, target)
     if w["lpips"]:
         terms["lpips"] = (lpips_fn or _default_lpips)(render, target)
-    if w["pos"] and getattr(gaussians, "local_means", None) is not None:
-        terms["pos"] = position_loss(gaussians.local_means, weights.eps_pos)
-    if w["scaling"] and getattr(gaussians, "local_log_scales", None) is not None:
-        terms["scaling"] = scaling_loss(gaussians.local_log_scales, weights.eps_scaling)
-    if w["offset"] and getattr(gaussians, "offsets", None) is not None:
-        terms["offset"] = offset_loss(*gaussians.offsets)
+    means = getattr(gaussians, "local_means", None)
+    log_scales = getattr(gaussians, "local_log_scales", None)
+    offsets = getattr(gaussians, "offsets", None)
+    if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):
+        # the full model: all three in one autograd Function
+        reg = _Regularisers.apply(means, log_scales, *offsets, weights.eps_pos, weights.eps_scaling)
+        terms.update(zip(("pos", "scaling", "offset"), reg.unbind()))
+    else:  # ablations and avatars without a rectifier: only the terms asked for
+        if w["pos"] and means is not None:
+            terms["pos"] = position_loss(means, weights.eps_pos)
+        if w["scaling"] and log_scales is not None:
+            terms["scaling"] = scaling_loss(log_scales, weights.eps_scaling)
+        if w["offset"] and offsets is not None:
+            terms["offset"] = offset_loss(*offsets)
     key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}
     if not terms:
         return render.new_zeros(()), {}
