@@ -27,6 +27,7 @@ from torch import nn
 from rmavatar.avatar.geometry import quat_rotate
 from rmavatar.avatar.model import GAUSSIAN_PARAMS
 from rmavatar.utils.config import check_fields
+from rmavatar.utils.device import constant
 
 
 # ------------------------------------------------------------------------------------------ schedule
@@ -275,7 +276,8 @@ class DensityController:
         vis = visible.to(self.grad_accum.device)
         if valid is not None:
             vis = vis & valid
-        self.grad_accum += torch.where(vis, norm, 0.0)
+        # (a 0-d constant, not 0.0: a Python scalar becomes a new tensor every step)
+        self.grad_accum += torch.where(vis, norm, constant(0.0, norm.dtype, norm.device))
         self.count += vis.to(self.count.dtype)
 
     def grad_average(self) -> torch.Tensor:
