@@ -156,3 +156,16 @@ def test_fused_regularisers_match_the_three_definitions():
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
     mu_smooth = (mu.detach() + 0.05).requires_grad_(True)  # no |mu| = 0 row: the norm is differentiable
     assert torch.autograd.gradcheck(lambda *t: _Regularisers.apply(*t, 0.8, 0.6), (mu_smooth, *inputs[1:]))
+
+
+def test_clamp_for_lpips_has_clamps_gradient():
+    from rmavatar.train.losses import _Clamp01
+
+    x = torch.tensor([-0.5, 0.0, 0.3, 1.0, 1.7, float("nan")], dtype=torch.float64, requires_grad=True)
+    y = x.detach().clone().requires_grad_(True)
+    grad = torch.arange(1.0, 7.0, dtype=torch.float64)
+    ours, plain = _Clamp01.apply(x), y.clamp(0.0, 1.0)
+    assert torch.equal(ours[:5], plain[:5]) and torch.isnan(ours[5])
+    (ours * grad).sum().backward()
+    (plain * grad).sum().backward()
+    assert torch.equal(x.grad, y.grad)  # including the bounds 0 and 1 (passed) and NaN (blocked)

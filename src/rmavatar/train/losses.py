@@ -119,11 +119,29 @@ def _default_ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return ssim(a, b, check_range=False)
 
 
+class _Clamp01(torch.autograd.Function):
+    """``x.clamp(0, 1)`` with clamp's gradient (passed where 0 <= x <= 1) as one select against a mask
+    made in the forward, where autograd's clamp backward takes five operations."""
+
+    @staticmethod
+    def forward(ctx, x):
+        out = x.clamp(0.0, 1.0)
+        if ctx.needs_input_grad[0]:
+            ctx.save_for_backward(out == x)  # False outside [0, 1] and for NaN, as clamp's backward
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        (inside,) = ctx.saved_tensors
+        return torch.where(inside, grad, constant(0.0, grad.dtype, grad.device))
+
+
 def _default_lpips(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     from rmavatar.evaluate import lpips
 
     # Renders may overshoot [0, 1] (SH colours are unbounded above); LPIPS sees what the image shows.
-    return lpips(a.clamp(0.0, 1.0), b, check_range=False)
+    return lpips(_Clamp01.apply(a), b, check_range=False)
 
 
 def total_loss(
