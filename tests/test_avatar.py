@@ -579,3 +579,23 @@ def test_posed_matches_the_plain_embedding():
         return av._posed(vertices)[:3]
 
     _assert_same_values_and_gradients(plain, library, (v, av.means, av.quats, av.log_scales), gen)
+
+
+def test_unit_rows_value_and_gradient_match_autograd():
+    # The written-out backward of v / max(|v|, eps) against autograd (float64), with a zero row and a
+    # row shorter than eps (divided by the constant eps: only the first term of the Jacobian).
+    from rmavatar.avatar.geometry import unit_rows
+
+    gen = torch.Generator().manual_seed(0)
+    v = torch.randn(20, 4, generator=gen, dtype=torch.float64)
+    v[0], v[1] = 0.0, 1e-13
+    v.requires_grad_(True)
+    w = v.detach().clone().requires_grad_(True)
+    grad = torch.randn(20, 4, generator=gen, dtype=torch.float64)
+    ours = unit_rows(v, 1e-12)
+    plain = w / torch.linalg.vector_norm(w, dim=-1, keepdim=True).clamp_min(1e-12)
+    assert torch.equal(ours, plain)
+    (ours * grad).sum().backward()
+    (plain * grad).sum().backward()
+    torch.testing.assert_close(v.grad, w.grad, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda x: unit_rows(x, 1e-12), (v[2:].detach().clone().requires_grad_(True),))

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from rmavatar.avatar.geometry import quat_identity, quat_left_matrix, quat_multiply, rotmat_to_quat, triangle_frames
+from rmavatar.avatar.geometry import (quat_identity, quat_left_matrix, quat_multiply, rotmat_to_quat, triangle_frames,
+                                     unit_rows)
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
@@ -348,7 +349,7 @@ class Avatar(nn.Module):
         g = table[slot]
         frames, wR, M, w = g[:, 0:9].unflatten(-1, (3, 3)), g[:, 9:18].unflatten(-1, (3, 3)), g[:, 18:21], g[:, 21]
         mu_star = torch.baddbmm(M.unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
-        r = self.quats / torch.linalg.vector_norm(self.quats, dim=-1, keepdim=True).clamp_min(1e-12)
+        r = unit_rows(self.quats, 1e-12)
         r_star = (g[:, 22:38].unflatten(-1, (4, 4)) @ r.unsqueeze(-1)).squeeze(-1)
         s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
         return mu_star, r_star, s_star, frames, w, wR, slot
@@ -410,8 +411,7 @@ class Avatar(nn.Module):
                 d_mu = (wR @ d_mu.unsqueeze(-1)).squeeze(-1)
                 d_s = w.unsqueeze(-1) * d_s
             mu = mu + d_mu
-            dq = d_r + quat_identity(d_r.dtype, d_r.device)
-            dq = dq / torch.linalg.vector_norm(dq, dim=-1, keepdim=True).clamp_min(1e-12)
+            dq = unit_rows(d_r + quat_identity(d_r.dtype, d_r.device), 1e-12)
             r = quat_multiply(r, dq)
             s = (s + d_s).clamp_min(self.config.min_scale)
             offsets = (d_mu, d_s, d_r)
