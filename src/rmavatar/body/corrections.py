@@ -104,12 +104,8 @@ def correction_adam_step(delta: torch.Tensor, grad: torch.Tensor, exp_avg: torch
     """
     steps[rows] += 1
     t = steps[rows].to(grad.dtype)
-    sq = grad.square()
     per_joint = exp_avg_sq.dim() == 2
-    if per_joint:
-        sq = torch.cat((sq[:, : NUM_JOINTS * 3].unflatten(-1, (NUM_JOINTS, 3)).sum(-1), sq[:, -3:].sum(-1, keepdim=True)), 1)
-    else:
-        sq = sq.sum(-1)
+    sq = _per_joint(grad.square()) if per_joint else grad.square().sum(-1)
     exp_avg[rows] = BETA1 * exp_avg[rows] + (1 - BETA1) * grad
     exp_avg_sq[rows] = BETA2 * exp_avg_sq[rows] + (1 - BETA2) * sq
     m_hat = exp_avg[rows] / (1 - BETA1**t)[:, None]
