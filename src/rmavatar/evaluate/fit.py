@@ -123,9 +123,13 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
                      torch.tensor(c.K, dtype=torch.float32, device=dev), c.width, c.height))
     rectified: list = [None] * b
     colors: list = [None] * b
+    pooled = {}  # the targets and masks at the current scale: pooled once per scale, not every step
     for step in range(cfg.steps):
         scale = 1.0 - (1.0 - cfg.final_scale) * step / max(cfg.steps - 1, 1)
         pool = cfg.scales[step * len(cfg.scales) // cfg.steps]
+        if pooled.get("k") != pool:
+            pooled = {"k": pool, "targets": [_pooled(t, pool) for t in targets],
+                      "masks": [_pooled(m, pool) for m in masks]}
         fitted = apply_pose_corrections(poses, delta)
         vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl).vertices.float()
         loss = 0.0
@@ -143,8 +147,8 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
                     colors[k] = gs.colors(viewmat)
             image, alpha, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, colors[k], viewmat, K, width,
                                         height, background=background)
-            loss = loss + (_pooled(image, pool) - _pooled(targets[k], pool)).abs().mean() \
-                + cfg.silhouette * (_pooled(alpha, pool) - _pooled(masks[k], pool)).abs().mean()
+            loss = loss + (_pooled(image, pool) - pooled["targets"][k]).abs().mean() \
+                + cfg.silhouette * (_pooled(alpha, pool) - pooled["masks"][k]).abs().mean()
         (grad,) = torch.autograd.grad(loss, delta)
         correction_adam_step(delta, grad, exp_avg, exp_avg_sq, counts, slice(0, b), lr * scale)
     with torch.no_grad():
