@@ -599,3 +599,4 @@ def test_unit_rows_value_and_gradient_match_autograd():
     (plain * grad).sum().backward()
     torch.testing.assert_close(v.grad, w.grad, rtol=1e-12, atol=1e-12)
     assert torch.autograd.gradcheck(lambda x: unit_rows(x, 1e-12), (v[2:].detach().clone().requires_grad_(True),))
+

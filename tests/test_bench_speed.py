@@ -92,3 +92,29 @@ def test_bad_arguments_fail_before_measuring(tmp_path, capsys):
     assert "lots" in capsys.readouterr().err
     assert main(["bench", "speed", "--json", str(tmp_path / "missing" / "s.json")]) == 2
     assert "cannot write --json" in capsys.readouterr().err
+
+
+def test_op_counter_counts_operations_views_and_syncs():
+    """The proxy behind `bench step`'s operation and sync counts, on ops whose kind is known: views and
+    metadata changes are not operations; a host read, a boolean-mask index and nonzero are syncs; the
+    profiler annotations torch.optim wraps around step() are nothing."""
+    import torch
+
+    from rmavatar.bench.counting import OpCounter
+
+    a, b = torch.rand(4, 3), torch.rand(4, 3)
+    with OpCounter() as c:
+        d = a + b
+        d.view(12), d.t(), d.detach()
+        d.sum().item()
+        a[a > 0.5]
+        torch.nonzero(a)
+    assert (c.ops, c.syncs) == (6, 3)
+    assert c.views == 3
+    assert set(c.syncs_by_name) == {"aten::_local_scalar_dense", "aten::index.Tensor", "aten::nonzero"}
+    p = torch.nn.Parameter(torch.rand(3))
+    p.grad = torch.ones(3)
+    opt = torch.optim.SGD([p], lr=0.1)
+    with OpCounter() as c:
+        opt.step()
+    assert (c.ops, c.syncs, dict(c.by_name)) == (1, 0, {"aten::add_.Tensor": 1})

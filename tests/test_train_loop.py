@@ -279,3 +279,41 @@ def test_a_run_on_each_device_writes_previews_tensorboard_and_a_checkpoint(data,
     assert list((tmp_path / "run" / "tb").iterdir())
     trained = load_trained(tmp_path / "run", device=device)
     assert trained.iteration == 4 and trained.avatar.means.device.type == device
+
+
+@pytest.mark.parametrize("background", ["white", "random"])
+def test_frame_caches_change_nothing_but_the_work(data, tmp_path, monkeypatch, background):
+    """Steps reading the cached face tables and targets move the avatar exactly as steps that compute
+    them (a zero cache budget); with the targets' LPIPS features cached as well, the losses agree to
+    float32 rounding (the distance's reductions group differently; float64 equality is tested in
+    test_metrics_lpips). With a random background nothing fixed is kept."""
+    import rmavatar.train.trainer as trainer_module
+
+    def run(budget, name, lpips_units=True):
+        monkeypatch.setattr(trainer_module, "FRAME_CACHE_BYTES", budget)
+        cfg = _cfg(data, 20)
+        cfg.background = background
+        t = Trainer(cfg, tmp_path / name, progress=False)
+        t.setup()
+        if not lpips_units:
+            t.target_units = None
+        losses = []
+        for _ in range(6):
+            losses.append(float(t.step()["loss"]))
+            t.iteration += 1
+        return t, losses
+
+    budget = trainer_module.FRAME_CACHE_BYTES
+    cached, loss_cached = run(budget, "cached")
+    tables, loss_tables = run(budget, "tables", lpips_units=False)
+    plain, loss_plain = run(0, "plain")
+    assert plain.face_tables is None and plain.targets is None and plain.target_units is None
+    assert cached.face_tables is not None and cached.face_tables.shape[0] == cached.vertices.shape[0]
+    if background == "white":
+        assert cached.targets is not None and len(cached.target_units) == cached.vertices.shape[0]
+    else:
+        assert cached.targets is None and cached.target_units is None
+    assert loss_tables == loss_plain
+    for (name, a), b in zip(tables.avatar.state_dict().items(), plain.avatar.state_dict().values()):
+        assert torch.equal(a, b), name
+    torch.testing.assert_close(torch.tensor(loss_cached), torch.tensor(loss_plain), rtol=1e-6, atol=0)

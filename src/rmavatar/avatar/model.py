@@ -30,6 +30,7 @@ RECTIFIERS = ("paper", "local")  # model.rectifier designs (False: no rectifier)
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
 
 # The per-Gaussian parameters, in the order density control and checkpoints see them.
+FACE_TABLE = 38  # columns of Avatar.face_table: R 9, w R 9, M 3, w 1, L(quat(R)) 16
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
 
@@ -308,9 +309,10 @@ class Avatar(nn.Module):
             self.set_frequency_alpha(self.config.num_freqs)
 
     # ------------------------------------------------------------------ posing
-    def posed(self, vertices: torch.Tensor):
-        """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3]."""
-        return self._posed(vertices)[:3]
+    def posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
+        """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3] (``table``: as in
+        :meth:`forward`)."""
+        return self._posed(vertices, table)[:3]
 
     def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
         """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
@@ -330,21 +332,36 @@ class Avatar(nn.Module):
             cached = self._local_cache = (key, (wR, self.rest_centroids[slot], group))
         return cached[1]
 
-    def _posed(self, vertices: torch.Tensor):
-        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3], scale w [N] and w R [N,3,3],
-        and its index into the binding faces, slot [N]."""
-        if vertices.dim() != 2 or vertices.shape != (self.num_vertices, 3):
+    def face_table(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The frames of the binding faces of posed meshes ``vertices`` [V,3] or [B,V,3]:
+        [Fb, FACE_TABLE] or [B, Fb, FACE_TABLE], per face R (9), w R (9), M (3), w (1) and L(quat(R)) (16;
+        the matrix of r -> quat(R) (x) r), so that mu* and r* are one batched matrix product each.
+
+        It depends on the mesh only, not on the Gaussians: training, which poses the same frames again
+        and again, computes it once per frame and passes it to :meth:`forward` as ``table``."""
+        if vertices.dim() not in (2, 3) or vertices.shape[-2:] != (self.num_vertices, 3):
             raise ValueError(
-                f"vertices must be [{self.num_vertices},3] (this avatar's body), got {tuple(vertices.shape)}"
+                f"vertices must be [{self.num_vertices},3] or [B,{self.num_vertices},3] (this avatar's body), "
+                f"got {tuple(vertices.shape)}"
             )
-        vertices = vertices.to(self.means.dtype)
-        # Frames for the faces in use only (binding faces; far fewer than N after densification),
-        # gathered to the Gaussians in one indexing: R, w R, M, w and L(quat(R)) (the matrix of
-        # r -> quat(R) (x) r), so that mu* and r* are one batched matrix product each.
-        R, w, M = triangle_frames(vertices, self.faces[self.binding_faces])
+        # Frames for the faces in use only (binding faces; far fewer than N after densification).
+        R, w, M = triangle_frames(vertices.to(self.means.dtype), self.faces[self.binding_faces])
         R9 = R.flatten(-2)
-        table = torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
-                           quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
+        return torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
+                          quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
+
+    def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
+        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3], scale w [N] and w R [N,3,3],
+        and its index into the binding faces, slot [N]. ``table``: :meth:`face_table` of ``vertices``,
+        when the caller has it (then ``vertices`` is not read)."""
+        if table is None:
+            if vertices is None or vertices.dim() != 2:
+                raise ValueError(f"vertices must be [{self.num_vertices},3] (this avatar's body), got "
+                                 f"{None if vertices is None else tuple(vertices.shape)}")
+            table = self.face_table(vertices)
+        elif table.shape != (self.binding_faces.shape[0], FACE_TABLE):
+            raise ValueError(f"table must be [{self.binding_faces.shape[0]},{FACE_TABLE}] (face_table of one "
+                             f"mesh), got {tuple(table.shape)}")
         slot = self._face_slot()
         g = table[slot]
         frames, wR, M, w = g[:, 0:9].unflatten(-1, (3, 3)), g[:, 9:18].unflatten(-1, (3, 3)), g[:, 18:21], g[:, 21]
@@ -396,13 +413,15 @@ class Avatar(nn.Module):
             return self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
         return self.rectifier(mu, body_pose)
 
-    def forward(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None,
-                rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> GaussianSet:
+    def forward(self, vertices: torch.Tensor | None, body_pose: torch.Tensor | None = None,
+                rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                table: torch.Tensor | None = None) -> GaussianSet:
         """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
         pose input; may be None only without a rectifier, or with ``rectified``); rectified: the
         rectifier's raw outputs from :meth:`rectify` to use instead of running it (test-time pose
-        fitting holds them fixed between refreshes)."""
-        mu, r, s, frames, w, wR, slot = self._posed(vertices)
+        fitting holds them fixed between refreshes); table: :meth:`face_table` of ``vertices`` (training
+        passes each frame's, computed once; ``vertices`` may then be None)."""
+        mu, r, s, frames, w, wR, slot = self._posed(vertices, table)
         offsets = None
         if self.rectifier is not None:
             d_mu, d_s, d_r = rectified if rectified is not None else self._rectify(mu, slot, body_pose)

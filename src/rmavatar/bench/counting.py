@@ -8,7 +8,8 @@ be counted on any machine, so they serve as a device-independent proxy for GPU s
 below autograd, forward and backward (the autograd engine's calls included).
 
 - operations: every ATen call except views and pure metadata changes (``view``, ``t``, ``detach``,
-  ``expand``, ...), which launch no kernel.
+  ``expand``, ...), which launch no kernel. The profiler's own annotations (``profiler::`` calls that
+  ``torch.optim`` makes around each ``step()``) are not tensor operations and are not counted at all.
 - syncs: the calls that make the host wait for the device on CUDA: reading a value on the host
   (``_local_scalar_dense``: ``.item()``, ``float(t)``, ``bool(t)``, ``if t:``), operations whose output
   size depends on the data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``,
@@ -73,6 +74,8 @@ class OpCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
+        if func.namespace == "profiler":
+            return func(*args, **kwargs)
         name = func.name()
         if getattr(func, "is_view", False) or func in _METADATA:
             self.views += 1

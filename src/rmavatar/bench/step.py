@@ -7,8 +7,8 @@ is left out (it runs once per few hundred steps; its cost is reported separately
 
 The breakdown times each stage alone on the same inputs (median of repeats):
 body forward (one frame; training caches all frames' posed bodies up front, so a step pays 0),
-mesh embedding (triangle frames and the per-Gaussian transform, fwd+bwd), rectifier MLP (fwd+bwd),
-rasterizer forward and backward, losses (L1 + SSIM + LPIPS + regularisers, fwd+bwd), optimiser
+mesh embedding (the per-Gaussian transform from the frame's face table, cached as in a step; fwd+bwd),
+rectifier MLP (fwd+bwd), rasterizer forward and backward, losses (L1 + SSIM + LPIPS + regularisers, fwd+bwd), optimiser
 (Adam step + zero_grad). "other" = full step minus the stages.
 """
 
@@ -41,28 +41,30 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
     from rmavatar.render import rasterize
     from rmavatar.train.losses import total_loss
+    from rmavatar.train.trainer import background_color
 
     av, cfg, dev = trainer.avatar, trainer.cfg, trainer.device
     i = 0
     params = trainer.dataset.params(cfg.data.split)
     one = {k: torch.as_tensor(params[k][:1], dtype=torch.float32, device=dev)
            for k in ("betas", "global_orient", "body_pose", "transl")}
-    verts, pose = trainer.vertices[i], trainer.body_pose[i]
-    bg = torch.ones(3, device=dev)
-    target = trainer.target(i, bg)
+    verts, pose, table = trainer.frame_body(i, trainer.iteration)
+    bg = background_color(cfg.background, trainer.bg_generator, dev)
+    target = trainer.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
+    units = trainer.target_units[i] if trainer.target_units is not None and bg is trainer._cached_bg else None
     out = {}
 
     with torch.no_grad():
         out["body_forward"] = median_time(lambda: trainer.body(**one), repeats, sync)
 
     def embed():
-        mu, r, s = av.posed(verts)
+        mu, r, s = av.posed(verts, table)
         (mu.sum() + r.sum() + s.sum()).backward()
 
     out["mesh_embedding"] = median_time(embed, repeats, sync)
     if av.rectifier is not None:
         with torch.no_grad():
-            mu0 = av.posed(verts)[0]
+            mu0 = av.posed(verts, table)[0]
 
         def rect():
             d_mu, d_s, d_r = av.rectifier(mu0, pose)
@@ -70,7 +72,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
         out["rectifier"] = median_time(rect, repeats, sync)
     with torch.no_grad():
-        gs = av(verts, pose)
+        gs = av(verts, pose, table=table)
     colors = gs.colors(trainer.viewmats[i])
     leaves = [t.detach().clone().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors)]
 
@@ -96,7 +98,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
         gs_leaf.offsets = tuple(o.detach().clone().requires_grad_(True) for o in gs.offsets)
 
     def losses():
-        loss, _ = total_loss(img_leaf, target, gs_leaf, cfg.loss)
+        loss, _ = total_loss(img_leaf, target, gs_leaf, cfg.loss, lpips_units=units)
         loss.backward()
 
     out["losses"] = median_time(losses, repeats, sync)

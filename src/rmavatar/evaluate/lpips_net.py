@@ -86,9 +86,23 @@ class LPIPSAlex(nn.Module):
         self._head_weights = {}  # derived from the heads, which .to() / .double() replace
         return super()._apply(fn, recurse)
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        fx, fy = self.features(x), self.features(y)
-        return _Distance.apply(*self.head_weights(fx), *fx, *fy)
+    def forward(self, x: torch.Tensor, y: torch.Tensor | None = None,
+                y_units: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """Distance [B] of ``x`` to ``y``, or to a target given as ``y_units`` (:meth:`units` of it)."""
+        fx = self.features(x)
+        if y_units is None:
+            fy = self.features(y)
+            return _Distance.apply(*self.head_weights(fx), *fx, *fy)
+        if y is not None or len(y_units) != len(fx) or any(u.shape[1:] != f.shape[1:] for u, f in zip(y_units, fx)):
+            raise ValueError("give y or y_units (units() of an image of x's size), not both")
+        return _DistanceToUnits.apply(*self.head_weights(fx), *fx, *y_units)
+
+    @torch.no_grad()
+    def units(self, y: torch.Tensor) -> list[torch.Tensor]:
+        """The five layers' unit features f / (|f| + 1e-10) of images ``y`` [B,3,H,W] in [0, 1], without
+        gradient: all that the distance needs of a target, so a target scored many times (a training
+        frame) is run through the network once."""
+        return [f / (torch.linalg.vector_norm(f, dim=1, keepdim=True) + 1e-10) for f in self.features(y)]
 
 
 class _Distance(torch.autograd.Function):
@@ -127,21 +141,63 @@ class _Distance(torch.autograd.Function):
         # d/dd of sum_c w_c sum_hw d_c^2 per image, times the incoming gradient: 2 w_c grad_b d
         gw = grad[:, None] * weights2  # [B, sum C]
         gx, gy, start = [], [], 0
-        tiny = torch.finfo(grad.dtype).tiny  # where |f| = 0, u = 0 and the second term is 0 (as autograd's)
+        tiny = torch.finfo(grad.dtype).tiny
         for i in range(layers):
             d, u, n, denom = saved[4 * i: 4 * i + 4]
             c = d.shape[1]
             g = (d * gw[:, start:start + c, None]).view(b, c, *u.shape[2:])
             start += c
 
-            def through_norm(g_u, half):
-                u_h, n_h = u[half], n[half]
-                dot = torch.einsum("bchw,bchw->bhw", u_h, g_u).unsqueeze(1)  # u . g per pixel, one kernel
-                return torch.addcmul(g_u / denom[half], u_h, dot / n_h.clamp_min(tiny), value=-1.0)
-
-            gx.append(through_norm(g, slice(0, b)) if ctx.needs_input_grad[2 + i] else None)
-            gy.append(through_norm(-g, slice(b, None)) if ctx.needs_input_grad[2 + layers + i] else None)
+            x, y = slice(0, b), slice(b, None)
+            gx.append(_through_norm(g, u[x], n[x], denom[x], tiny) if ctx.needs_input_grad[2 + i] else None)
+            gy.append(_through_norm(-g, u[y], n[y], denom[y], tiny) if ctx.needs_input_grad[2 + layers + i] else None)
         return (None, None, *gx, *gy)
+
+
+def _through_norm(g, u, n, denom, tiny):
+    """The gradient g [B,C,H,W] w.r.t. u = f / (|f| + 1e-10) taken back to f: g / (n + e) - u (u . g) / n
+    (where |f| = 0, u = 0 and the second term is 0, as autograd's)."""
+    dot = torch.einsum("bchw,bchw->bhw", u, g).unsqueeze(1)  # u . g per pixel, one kernel
+    return torch.addcmul(g / denom, u, dot / n.clamp_min(tiny), value=-1.0)
+
+
+class _DistanceToUnits(torch.autograd.Function):
+    """:class:`_Distance` to a fixed target given by its unit features (``LPIPSAlex.units``):
+    (weights, 2 weights, fx_1..5, uy_1..5) -> [B], differentiable in fx only. The target's side of
+    the normalisation is not recomputed: 5 operations per layer instead of 6, and no target features."""
+
+    @staticmethod
+    def forward(ctx, weights, weights2, *feats):
+        if weights.requires_grad or any(u.requires_grad for u in feats[len(feats) // 2:]):
+            raise RuntimeError("LPIPS to fixed target units: only the image's features take a gradient")
+        layers = len(feats) // 2
+        saved, sums = [], []
+        for fx, uy in zip(feats[:layers], feats[layers:]):
+            n = torch.linalg.vector_norm(fx, dim=1, keepdim=True)
+            denom = n + 1e-10
+            u = fx / denom
+            d = (u - uy).flatten(2)  # [B,C,HW]
+            sums.append((d.unsqueeze(2) @ d.unsqueeze(3)).flatten(1))  # [B,C]: sum over pixels of d^2
+            saved += [d, u, n, denom]
+        ctx.save_for_backward(weights2, *saved)
+        return torch.cat(sums, 1) @ weights
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        weights2, *saved = ctx.saved_tensors
+        layers = len(saved) // 4
+        b = grad.shape[0]
+        gw = grad[:, None] * weights2  # [B, sum C]: 2 w_c grad_b, as in _Distance
+        gx, start = [], 0
+        tiny = torch.finfo(grad.dtype).tiny
+        for i in range(layers):
+            d, u, n, denom = saved[4 * i: 4 * i + 4]
+            c = d.shape[1]
+            g = (d * gw[:, start:start + c, None]).view(b, c, *u.shape[2:])
+            start += c
+            gx.append(_through_norm(g, u, n, denom, tiny) if ctx.needs_input_grad[2 + i] else None)
+        return (None, None, *gx, *([None] * layers))
 
 
 def _package_dir(name: str) -> Path:

@@ -144,6 +144,20 @@ def _default_lpips(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return lpips(_Clamp01.apply(a), b, check_range=False)
 
 
+def lpips_units(target: torch.Tensor) -> list[torch.Tensor]:
+    """What LPIPS needs of a target image [H,W,3] (its unit features, no gradient), for
+    ``total_loss(..., lpips_units=)``: a target used at many steps goes through the network once."""
+    from rmavatar.evaluate.lpips_net import load_lpips
+
+    return load_lpips(target.device, target.dtype).units(target.permute(2, 0, 1).unsqueeze(0))
+
+
+def _lpips_to_units(a: torch.Tensor, units: list[torch.Tensor]) -> torch.Tensor:
+    from rmavatar.evaluate.lpips_net import load_lpips
+
+    return load_lpips(a.device, a.dtype)(_Clamp01.apply(a).permute(2, 0, 1).unsqueeze(0), y_units=units).squeeze(0)
+
+
 def total_loss(
     render: torch.Tensor,
     target: torch.Tensor,
@@ -151,6 +165,7 @@ def total_loss(
     weights: LossConfig | None = None,
     lpips_fn: ImageFn | None = None,
     ssim_fn: ImageFn | None = None,
+    lpips_units: list[torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of all terms, and each unweighted term (detached) by name.
 
@@ -158,6 +173,8 @@ def total_loss(
     offsets feed the regularisers); weights: a ``LossConfig`` (None = the paper's weights; the
     ablations set ``offset`` or ``scaling`` to 0).
     ssim_fn / lpips_fn (a, b) -> scalar similarity / distance; None = ``rmavatar.evaluate``'s.
+    lpips_units: :func:`lpips_units` of ``target``, when the caller keeps them (training, per frame):
+    the default LPIPS then does not run the target through its network again.
     Terms with weight 0 are not computed.
     """
     if render.shape != target.shape:
@@ -171,7 +188,10 @@ def total_loss(
     if w["ssim"]:
         terms["ssim"] = 1.0 - (ssim_fn or _default_ssim)(render, target)
     if w["lpips"]:
-        terms["lpips"] = (lpips_fn or _default_lpips)(render, target)
+        if lpips_units is not None and lpips_fn is None:
+            terms["lpips"] = _lpips_to_units(render, lpips_units)
+        else:
+            terms["lpips"] = (lpips_fn or _default_lpips)(render, target)
     means = getattr(gaussians, "local_means", None)
     log_scales = getattr(gaussians, "local_log_scales", None)
     offsets = getattr(gaussians, "offsets", None)

@@ -5,7 +5,9 @@ paper's (run-length-scaled) schedule, atomic checkpoints, exact resume, Ctrl-C a
 (benchmarks, tests): ``setup()``, then ``step()`` as often as wanted, ``target(i, bg)`` for a frame's
 ground truth, ``save()``.
 
-The posed body of every training frame is computed once, up front, in batches; a step then only runs
+The posed body of every training frame is computed once, up front, in batches, and so are (while they
+fit in ``FRAME_CACHE_BYTES``) each frame's face table (the mesh half of posing the Gaussians) and, with a
+fixed background, its composited target and the target's LPIPS features; a step then only runs
 avatar -> rasterizer -> losses. With pose refinement (``optim.refine_poses``, :mod:`rmavatar.train.poses`)
 a step past its warm-up poses its frame's corrected body instead, through :meth:`Trainer.frame_body`.
 """
@@ -23,7 +25,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from rmavatar.avatar.model import Avatar
+from rmavatar.avatar.model import FACE_TABLE, Avatar
 from rmavatar.avatar.trained import (
     body_signature,
     check_body,
@@ -42,7 +44,7 @@ from rmavatar.train.checkpoint import (
     save_checkpoint,
 )
 from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
-from rmavatar.train.losses import total_loss
+from rmavatar.train.losses import lpips_units, total_loss
 from rmavatar.data.checks import check_files
 from rmavatar.utils import UserError, atomic_path, check_writable_folder, resolve_device
 from rmavatar.utils.device import constant
@@ -242,6 +244,11 @@ def _resume_payload(run_dir: Path, data: str | None) -> dict:
     return payload
 
 
+# Per-frame constants kept on the device for the whole run, while all of them together fit in this many
+# bytes (filled in this order, each kind for every frame or not at all): face tables, composited targets,
+# the targets' LPIPS features. Each saves a step dozens of tensor operations (GPU kernel launches).
+FRAME_CACHE_BYTES = 2 * 2**30
+
 _RESUME_CHANGEABLE = {("optim", "iters"), ("log", "checkpoint_every"), (None, "threads"), (None, "device")}
 
 
@@ -335,12 +342,41 @@ class Trainer:
             self.iteration = int(self.ckpt["iteration"])
             print(f"resuming {self.run_dir} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
         self.ckpt = None  # free the loaded tensors
+        self._cache_frames(FRAME_CACHE_BYTES)
         # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
         for stale in checkpoint_path(self.run_dir).parent.glob(".last.*.tmp.pt"):
             stale.unlink(missing_ok=True)
 
+    def _cache_frames(self, budget: int) -> None:
+        """Fill ``face_tables`` [n,Fb,38], ``targets`` [n,H,W,3] and ``target_units`` (LPIPS, per frame)
+        within ``budget`` bytes; a kind that does not fit stays None and is computed at each step."""
+        n = self.vertices.shape[0]
+        self.face_tables = self.targets = self.target_units = None
+        self._cached_bg = None
+        need = n * self.avatar.binding_faces.shape[0] * FACE_TABLE * self.vertices.element_size()
+        if need <= budget:
+            with torch.no_grad():
+                # one frame at a time: the same arithmetic, to the bit, as an uncached step's
+                self.face_tables = torch.stack([self.avatar.face_table(v) for v in self.vertices])
+            budget -= need
+        if self.cfg.background not in ("white", "black"):
+            return  # a new random background every step: nothing fixed to keep
+        bg = background_color(self.cfg.background, self.bg_generator, self.device)
+        need = n * self.height * self.width * 3 * 4
+        if need > budget:
+            return
+        self.targets = torch.stack([self.target(i, bg) for i in range(n)])
+        self._cached_bg = bg
+        budget -= need
+        if self.cfg.loss.lpips:
+            first = lpips_units(self.targets[0])
+            if n * sum(u.numel() * u.element_size() for u in first) <= budget:
+                self.target_units = [first] + [lpips_units(t) for t in self.targets[1:]]
+
     def target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
         """Frame ``i``'s image composited over the background ``bg`` [3]: [H,W,3] on the device."""
+        if self.targets is not None and bg is self._cached_bg:
+            return self.targets[i]
         frame = self.dataset.frame(self.cfg.data.split, i)
         image = torch.from_numpy(np.array(frame.image, dtype=np.float32)).to(self.device)
         mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32)).to(self.device)
@@ -385,10 +421,12 @@ class Trainer:
         i = self.sampler.next()
         bg = background_color(cfg.background, self.bg_generator, self.device)
         target = self.target(i, bg)
-        gs = self.avatar(*self.frame_body(i, it))
+        vertices, body_pose, table = self.frame_body(i, it)
+        gs = self.avatar(vertices, body_pose, table=table)
         image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
                                           background=bg, check=False)
-        loss, parts = total_loss(image, target, gs, cfg.loss)
+        units = self.target_units[i] if self.target_units is not None and bg is self._cached_bg else None
+        loss, parts = total_loss(image, target, gs, cfg.loss, lpips_units=units)
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
         if self.poses is not None and self.poses.delta.grad is not None:
@@ -492,12 +530,13 @@ class Trainer:
         if state is not None:
             self.poses.load_state_dict(state, where)
 
-    def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Posed vertices [V,3] and body_pose [69] of training frame ``i`` at step ``iteration``: the
-        cached ones, or with pose refinement past its warm-up the corrected pose through the body."""
+    def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Posed vertices [V,3], body_pose [69] and face table (``Avatar.face_table``, or None: to be
+        computed) of training frame ``i`` at step ``iteration``: the cached ones, or with pose refinement
+        past its warm-up the corrected pose through the body."""
         if self.poses is None or not self.poses.active(iteration):
-            return self.vertices[i], self.body_pose[i]
-        return self.poses.posed(self.body, i)
+            return self.vertices[i], self.body_pose[i], None if self.face_tables is None else self.face_tables[i]
+        return (*self.poses.posed(self.body, i), None)
 
     def _write_pose_files(self) -> None:
         """RUN/poses.npz (the refined training poses) and, for a subject with true poses,
