@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.util
+import itertools
 import pickle
 from pathlib import Path
 
@@ -89,13 +90,14 @@ class LPIPSAlex(nn.Module):
     def forward(self, x: torch.Tensor, y: torch.Tensor | None = None,
                 y_units: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Distance [B] of ``x`` to ``y``, or to a target given as ``y_units`` (:meth:`units` of it)."""
-        fx = self.features(x)
         if y_units is None:
-            fy = self.features(y)
+            fx, fy = self.features(x), self.features(y)
             return _Distance.apply(*self.head_weights(fx), *fx, *fy)
-        if y is not None or len(y_units) != len(fx) or any(u.shape[1:] != f.shape[1:] for u, f in zip(y_units, fx)):
+        if y is not None or len(y_units) != len(self.convs) or y_units[0].shape[2:] != _conv_size(x.shape[2:], 0):
             raise ValueError("give y or y_units (units() of an image of x's size), not both")
-        return _DistanceToUnits.apply(*self.head_weights(fx), *fx, *y_units)
+        weights, weights2 = self.head_weights(y_units)
+        params = [t for conv in self.convs for t in (conv.weight, conv.bias)]
+        return _ToUnits.apply(x, self.gain, self.offset, weights, weights2, *params, *y_units)
 
     @torch.no_grad()
     def units(self, y: torch.Tensor) -> list[torch.Tensor]:
@@ -161,43 +163,83 @@ def _through_norm(g, u, n, denom, tiny):
     return torch.addcmul(g / denom, u, dot / n.clamp_min(tiny), value=-1.0)
 
 
-class _DistanceToUnits(torch.autograd.Function):
-    """:class:`_Distance` to a fixed target given by its unit features (``LPIPSAlex.units``):
-    (weights, 2 weights, fx_1..5, uy_1..5) -> [B], differentiable in fx only. The target's side of
-    the normalisation is not recomputed: 5 operations per layer instead of 6, and no target features."""
+def _conv_size(hw, layer: int) -> tuple[int, int]:
+    """Height and width of AlexNet's ``layer``-th ReLU output for an input of size ``hw``."""
+    h, w = hw
+    for i, (_, _, k, stride, pad) in enumerate(ALEX_CONVS[: layer + 1]):
+        if i in (1, 2):  # the 3x3 stride-2 max pool before the second and third convolutions
+            h, w = (h - 3) // 2 + 1, (w - 3) // 2 + 1
+        h, w = (h + 2 * pad - k) // stride + 1, (w + 2 * pad - k) // stride + 1
+    return h, w
+
+
+class _ToUnits(torch.autograd.Function):
+    """LPIPS of images x [B,3,H,W] in [0, 1] to a fixed target given by its unit features
+    (``LPIPSAlex.units``), network and distance in one Function with the backward written out:
+    (x, gain, offset, weights, 2 weights, conv weight and bias x5, uy_1..5) -> [B], differentiable in x.
+
+    The backward runs the network's backward itself (convolution, ReLU and pooling backwards, input
+    gradients only: the network is frozen) and folds each layer's distance gradient into the gradient
+    coming down from the layer above in the same kernel that normalises it (``addcdiv``), where autograd
+    adds the two in a separate operation; and the target is never run through the network."""
 
     @staticmethod
-    def forward(ctx, weights, weights2, *feats):
-        if weights.requires_grad or any(u.requires_grad for u in feats[len(feats) // 2:]):
-            raise RuntimeError("LPIPS to fixed target units: only the image's features take a gradient")
-        layers = len(feats) // 2
-        saved, sums = [], []
-        for fx, uy in zip(feats[:layers], feats[layers:]):
-            n = torch.linalg.vector_norm(fx, dim=1, keepdim=True)
+    def forward(ctx, x, gain, offset, weights, weights2, *rest):
+        params, units = rest[: 2 * len(ALEX_CONVS)], rest[2 * len(ALEX_CONVS):]
+        if any(t.requires_grad for t in (gain, offset, weights, *params, *units)):
+            raise RuntimeError("LPIPS to fixed target units: only the image takes a gradient")
+        h = torch.addcmul(offset, x, gain)
+        inputs, acts, pools, sums, saved = [], [], [], [], []
+        for i, (_, _, _, stride, pad) in enumerate(ALEX_CONVS):
+            if i in (1, 2):
+                h, idx = F.max_pool2d_with_indices(h, kernel_size=3, stride=2)
+                pools.append(idx)
+            inputs.append(h)
+            a = F.conv2d(h, params[2 * i], params[2 * i + 1], stride=stride, padding=pad).relu_()
+            acts.append(a)
+            h = a
+            n = torch.linalg.vector_norm(a, dim=1, keepdim=True)
             denom = n + 1e-10
-            u = fx / denom
-            d = (u - uy).flatten(2)  # [B,C,HW]
+            u = a / denom
+            d = (u - units[i]).flatten(2)  # [B,C,HW]
             sums.append((d.unsqueeze(2) @ d.unsqueeze(3)).flatten(1))  # [B,C]: sum over pixels of d^2
             saved += [d, u, n, denom]
-        ctx.save_for_backward(weights2, *saved)
+        ctx.save_for_backward(gain, weights2, *params[0::2], *inputs, *acts, *pools, *saved)
         return torch.cat(sums, 1) @ weights
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        weights2, *saved = ctx.saved_tensors
-        layers = len(saved) // 4
+        layers = len(ALEX_CONVS)
+        gain, weights2, *rest = ctx.saved_tensors
+        kernels, inputs, acts = rest[:layers], rest[layers:2 * layers], rest[2 * layers:3 * layers]
+        pools, saved = rest[3 * layers:3 * layers + 2], rest[3 * layers + 2:]
         b = grad.shape[0]
         gw = grad[:, None] * weights2  # [B, sum C]: 2 w_c grad_b, as in _Distance
-        gx, start = [], 0
         tiny = torch.finfo(grad.dtype).tiny
-        for i in range(layers):
+        ends = list(itertools.accumulate(k.shape[0] for k in kernels))  # each layer's end in gw's columns
+        g_down = None  # the gradient w.r.t. layer i's ReLU output from the layers above it
+        for i in reversed(range(layers)):
             d, u, n, denom = saved[4 * i: 4 * i + 4]
             c = d.shape[1]
-            g = (d * gw[:, start:start + c, None]).view(b, c, *u.shape[2:])
-            start += c
-            gx.append(_through_norm(g, u, n, denom, tiny) if ctx.needs_input_grad[2 + i] else None)
-        return (None, None, *gx, *([None] * layers))
+            g = (d * gw[:, ends[i] - c:ends[i], None]).view(b, c, *u.shape[2:])
+            dot = torch.einsum("bchw,bchw->bhw", u, g).unsqueeze(1)
+            scaled = g / denom if g_down is None else torch.addcdiv(g_down, g, denom)
+            g_act = torch.addcmul(scaled, u, dot / n.clamp_min(tiny), value=-1.0)
+            g_pre = _threshold_backward(g_act, acts[i], 0)
+            _, _, k, stride, pad = ALEX_CONVS[i]
+            g_in = _convolution_backward(g_pre, inputs[i], kernels[i], None, (stride, stride), (pad, pad), (1, 1),
+                                         False, (0, 0), 1, (True, False, False))[0]
+            if i in (1, 2):  # back through the max pool onto the previous ReLU's output
+                g_in = _max_pool_backward(g_in, acts[i - 1], (3, 3), (2, 2), (0, 0), (1, 1), False, pools[i - 1])
+            g_down = g_in
+        n_rest = 2 * layers + layers
+        return (g_down * gain if ctx.needs_input_grad[0] else None, *([None] * (4 + n_rest)))
+
+
+_threshold_backward = torch.ops.aten.threshold_backward
+_convolution_backward = torch.ops.aten.convolution_backward
+_max_pool_backward = torch.ops.aten.max_pool2d_with_indices_backward
 
 
 def _package_dir(name: str) -> Path:
