@@ -182,34 +182,43 @@ def total_loss(
     weights = weights or LossConfig()
     w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset")}
 
-    terms: dict[str, torch.Tensor] = {}
+    # The loss is one product of the weights with all terms' values side by side, plus a constant (the
+    # SSIM term enters as w (1 - SSIM) = w - w SSIM): one kernel launch on a GPU, where a multiply and an
+    # add per term (and 1 - SSIM forward and backward) take a dozen.
+    values: list[tuple[str, torch.Tensor]] = []  # (name, [k] values), each of k terms weighted by w[name]
     if w["rgb"]:
-        terms["l1"] = (render - target).abs().mean()
+        values.append(("l1", (render - target).abs().mean().view(1)))
     if w["ssim"]:
-        terms["ssim"] = 1.0 - (ssim_fn or _default_ssim)(render, target)
+        values.append(("ssim", (ssim_fn or _default_ssim)(render, target).view(1)))
     if w["lpips"]:
         if lpips_units is not None and lpips_fn is None:
-            terms["lpips"] = _lpips_to_units(render, lpips_units)
+            values.append(("lpips", _lpips_to_units(render, lpips_units).view(1)))
         else:
-            terms["lpips"] = (lpips_fn or _default_lpips)(render, target)
+            values.append(("lpips", (lpips_fn or _default_lpips)(render, target).view(1)))
     means = getattr(gaussians, "local_means", None)
     log_scales = getattr(gaussians, "local_log_scales", None)
     offsets = getattr(gaussians, "offsets", None)
     if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):
         # the full model: all three in one autograd Function
-        reg = _Regularisers.apply(means, log_scales, *offsets, weights.eps_pos, weights.eps_scaling)
-        terms.update(zip(("pos", "scaling", "offset"), reg.unbind()))
+        values.append(("regularisers", _Regularisers.apply(means, log_scales, *offsets, weights.eps_pos,
+                                                           weights.eps_scaling)))
     else:  # ablations and avatars without a rectifier: only the terms asked for
         if w["pos"] and means is not None:
-            terms["pos"] = position_loss(means, weights.eps_pos)
+            values.append(("pos", position_loss(means, weights.eps_pos).view(1)))
         if w["scaling"] and log_scales is not None:
-            terms["scaling"] = scaling_loss(log_scales, weights.eps_scaling)
+            values.append(("scaling", scaling_loss(log_scales, weights.eps_scaling).view(1)))
         if w["offset"] and offsets is not None:
-            terms["offset"] = offset_loss(*offsets)
-    key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}
-    if not terms:
+            values.append(("offset", offset_loss(*offsets).view(1)))
+    if not values:
         return render.new_zeros(()), {}
-    # One dot product instead of a multiply and an add per term (each a kernel launch on a GPU).
-    weight = constant(tuple(w[key_weight[name]] for name in terms), render.dtype, render.device)
-    loss = torch.stack(tuple(terms.values())) @ weight
-    return loss, {k: v.detach() for k, v in terms.items()}
+    key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}
+    names = [n for name, _ in values for n in (("pos", "scaling", "offset") if name == "regularisers" else (name,))]
+    row = tuple(-w["ssim"] if n == "ssim" else w[key_weight[n]] for n in names)
+    weight = constant((row,), render.dtype, render.device)  # [1,T]
+    const = constant((w["ssim"] if "ssim" in names else 0.0,), render.dtype, render.device)
+    flat = torch.cat([v for _, v in values]) if len(values) > 1 else values[0][1]
+    loss = torch.addmv(const, weight, flat).squeeze(0)
+    parts = dict(zip(names, flat.detach().unbind()))
+    if "ssim" in parts:
+        parts["ssim"] = 1.0 - parts["ssim"]  # the term, as it is weighted and reported
+    return loss, parts
