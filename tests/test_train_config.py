@@ -19,7 +19,7 @@ from rmavatar.commands.train import add_arguments, config_from_args
 from rmavatar.train import checkpoint as ck
 from rmavatar.train.config import TrainConfig, load_config, save_config
 from rmavatar.train.optim import position_lr
-from rmavatar.train.trainer import FrameSampler, composite_target
+from rmavatar.train.trainer import FrameSampler, _finite_flag, _NonFiniteGuard, composite_target
 from rmavatar.utils import UserError
 
 
@@ -175,3 +175,25 @@ def test_body_signature_mismatch_is_a_clear_error():
     check_body(body_signature(a), a, "ckpt")
     with pytest.raises(UserError, match="incompatible"):
         check_body(body_signature(a), b, "ckpt")
+
+
+@pytest.mark.parametrize("poison", [None, math.nan, math.inf, -math.inf, 3e38])
+def test_finite_flag_and_its_float_twin(poison):
+    a, b = torch.ones(5), torch.full((2, 3), -2.0)
+    if poison is not None:
+        b[1, 2] = poison
+    if poison == 3e38:  # finite, but the sum overflows: also skipped
+        a[:] = 3e38
+    ok, bad = _finite_flag(a, b, torch.tensor(0.5))
+    expect_ok = poison is None
+    assert ok.dtype == torch.bool and bool(ok) is expect_ok
+    assert bad.dtype == torch.float32 and float(bad) == (0.0 if expect_ok else 1.0)
+
+
+def test_non_finite_guard_counts_skips_and_the_longest_streak():
+    guard = _NonFiniteGuard(torch.device("cpu"), max_bad_steps=10)
+    pattern = [1, 1, 0, 1, 1, 1, 0, 0, 1]
+    for b in pattern:
+        guard.update(torch.tensor(float(b)))
+    skipped, longest = guard.counters()
+    assert float(skipped) == 6 and float(longest) == 3 and float(guard.run) == 1

@@ -271,14 +271,19 @@ class DensityController:
         visible = info.get("visible")
         if visible is None:
             visible = info["radii"] > 0
-        g = grad.detach().to(self.grad_accum.dtype) * grad.new_tensor([width / 2.0, height / 2.0]).to(self.grad_accum.dtype)
+        dtype, dev = self.grad_accum.dtype, self.grad_accum.device
+        # |(gx W/2, gy H/2)| = H/2 |(gx W/H, gy)|: the H/2 rides on the accumulation, and a square image
+        # needs no scaling pass at all.
+        g = grad.detach().to(dtype)
+        if width != height:
+            g = g * constant((width / height, 1.0), dtype, dev)
         norm = torch.linalg.vector_norm(g, dim=-1)
-        vis = visible.to(self.grad_accum.device)
+        vis = visible.to(dev)
         if valid is not None:
             vis = vis & valid
         # (a 0-d constant, not 0.0: a Python scalar becomes a new tensor every step)
-        self.grad_accum += torch.where(vis, norm, constant(0.0, norm.dtype, norm.device))
-        self.count += vis.to(self.count.dtype)
+        self.grad_accum.add_(torch.where(vis, norm, constant(0.0, dtype, dev)), alpha=height / 2.0)
+        self.count += vis  # a bool adds as 0 / 1
 
     def grad_average(self) -> torch.Tensor:
         return self.grad_accum / self.count.clamp_min(1.0)

@@ -433,8 +433,8 @@ class Trainer:
             grads.append(self.poses.delta.grad)
         # Checked on the device, in one reduction: the Gaussians (the rasterizer culls non-finite ones
         # instead of refusing them), the loss and every gradient.
-        ok = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
-        bad = (~ok).to(torch.float32)  # 1.0 for a skipped step: the optimiser's found_inf and the guard's count
+        # bad: 1.0 for a skipped step, the optimiser's found_inf and the guard's count
+        ok, bad = _finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
         self._optimizer_step(ok, bad)
         self.optimizer.zero_grad(set_to_none=True)
         if self.poses is not None:
@@ -609,16 +609,19 @@ class Trainer:
             writer.add_image("preview/render_target", arr, it, dataformats="HWC")
 
 
-def _finite_flag(*tensors: torch.Tensor) -> torch.Tensor:
-    """A bool tensor on the tensors' device: every element of every tensor is finite. No host sync.
+def _finite_flag(*tensors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ok, bad) on the tensors' device: ok (bool) = every element of every tensor is finite; bad is
+    the float32 1.0 - ok. No host sync.
 
-    A sum is NaN/Inf when any element is (or when finite values overflow: also worth skipping), so
-    this is one fused reduction per tensor, their sum, and one check: x - x is 0 for a finite x and NaN
-    otherwise (two operations on one number, where isfinite + all take five)."""
+    The sum of the L1 norms is NaN or +Inf when any element is (or when finite values overflow: also
+    worth skipping), so this is one fused reduction over all tensors, their sum, and one comparison:
+    a sum of norms is never negative, and NaN < Inf is false (isfinite + all would take five)."""
     if not tensors:
-        return torch.ones((), dtype=torch.bool)
-    total = torch.stack(torch._foreach_norm([t.detach() for t in tensors], 1)).sum()
-    return (total - total) == 0
+        ok = torch.ones((), dtype=torch.bool)
+    else:
+        ok = torch.stack(torch._foreach_norm([t.detach() for t in tensors], 1)).sum() < math.inf
+    dev = ok.device
+    return ok, torch.where(ok, constant(0.0, torch.float32, dev), constant(1.0, torch.float32, dev))
 
 
 class _NonFiniteGuard:
@@ -635,7 +638,7 @@ class _NonFiniteGuard:
         """``bad``: 1.0 for a skipped step, 0.0 for an applied one (a float tensor on the device)."""
         bad = bad.to(self.run.dtype)
         self.skipped += bad
-        self.run.add_(1.0).mul_(bad)
+        torch.addcmul(bad, self.run, bad, out=self.run)  # (run + 1) * bad, as bad is 0 or 1
         torch.maximum(self.longest, self.run, out=self.longest)
 
     def counters(self) -> tuple[torch.Tensor, torch.Tensor]:
