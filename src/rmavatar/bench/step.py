@@ -175,11 +175,10 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         # progress here would be undone by the first step, which then timed an early, cheaper one).
         trainer.iteration = late_iteration(cfg)
 
-        skipped = torch.zeros((), dtype=torch.long, device=trainer.device)
+        oks = []  # each step's device-side flag, read once at the end: no sync, no operation per step
 
         def one_step():
-            out = trainer.step()
-            skipped.add_((~out["ok"]).long())  # read once at the end: no sync per step
+            oks.append(trainer.step()["ok"])
             trainer.iteration += 1
 
         for _ in range(warmup):
@@ -190,8 +189,9 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
                 one_step()
         times = clock.wall
         counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
-        if int(skipped):
-            raise RuntimeError(f"{int(skipped)} benchmark step(s) were skipped (non-finite loss)")
+        skipped = int((~torch.stack(oks)).sum())
+        if skipped:
+            raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.
