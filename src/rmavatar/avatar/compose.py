@@ -10,9 +10,10 @@ L(quat(R)) 22:38, see ``Avatar._posed``) and its local parameters (means, quats,
 - "paper" design: mu' = w R mu + M + d_mu,  s' = max(w exp(log_s) + d_s, min_scale);
 - both designs:   r' = quat(R) (x) unit(r) (x) unit(1 + d_r).
 
-Autograd over the plain formulas records about 50 operations forward and backward (each normalisation,
-quaternion product and broadcast adds several); this takes about 40 (the two normalisations run as one
-on a stacked [2,N,4], and the gradients of the face rows leave as a single [N,38] tensor).
+Autograd over the plain formulas records about 44 operations forward and backward for the local design
+(each normalisation and quaternion product several); this takes 32: the two normalisations run as one
+on a stacked [2,N,4], and the face rows' gradient (one [N,38] tensor) is made only when the vertices
+need it (pose fitting), not in training.
 """
 
 from __future__ import annotations
@@ -44,24 +45,22 @@ class _Compose(torch.autograd.Function):
             a = means + d_mu
             mu = torch.baddbmm(M.unsqueeze(-1), wR, a.unsqueeze(-1)).squeeze(-1)
             d_mu_w = torch.bmm(wR, d_mu.unsqueeze(-1)).squeeze(-1)
-            t = e + d_s
-            s = (t * w).clamp_min(min_scale)
+            s = ((e + d_s) * w).clamp_min(min_scale)
             d_s_w = d_s * w
         elif design == "paper":
             a = means
             mu = torch.baddbmm((M + d_mu).unsqueeze(-1), wR, means.unsqueeze(-1)).squeeze(-1)
-            t = e
             s = torch.addcmul(d_s, e, w).clamp_min(min_scale)
         else:
             a = means
             mu = torch.baddbmm(M.unsqueeze(-1), wR, means.unsqueeze(-1)).squeeze(-1)
-            t = e
             s = e * w
         if design is None:
             v = quats.unsqueeze(0)  # [1,N,4]
         else:
             # both normalisations at once: [2,N,4] = (quats, 1 + d_r)
-            v = torch.stack((quats, d_r)) + constant(((0.0,) * 4, (1.0, 0.0, 0.0, 0.0)), quats.dtype, quats.device).unsqueeze(1)
+            identity = constant(((0.0,) * 4, (1.0, 0.0, 0.0, 0.0)), quats.dtype, quats.device).unsqueeze(1)
+            v = torch.stack((quats, d_r)) + identity
         norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
         clamped = norm.clamp_min(_EPS)
         u = v / clamped
@@ -72,14 +71,14 @@ class _Compose(torch.autograd.Function):
             right = quat_right_matrix(u[1])  # r' = r* (x) unit(1 + d_r) = R(unit(1 + d_r)) r*
             r = torch.bmm(right, r_star.unsqueeze(-1)).squeeze(-1)
         ctx.min_scale = min_scale
-        ctx.save_for_backward(wR, L, w, e, a, d_mu, d_s, t, s, u, norm, clamped, r_star, right)
+        ctx.save_for_backward(wR, L, w, e, a, d_mu, d_s, s, u, norm, clamped, r_star, right)
         ctx.n = n
         return mu, r, s, g[:, 0:9].unflatten(-1, (3, 3)), d_mu_w, d_s_w
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_mu, g_r, g_s, g_frames, g_dmu_w, g_ds_w):
-        wR, L, w, e, a, d_mu, d_s, t, s, u, norm, clamped, r_star, right = ctx.saved_tensors
+        wR, L, w, e, a, d_mu, d_s, s, u, norm, clamped, r_star, right = ctx.saved_tensors
         design, n = ctx.design, ctx.n
         need_g, need_means, need_quats, need_scales, need_dmu, need_ds, need_dr = ctx.needs_input_grad[:7]
         zero = constant(0.0, wR.dtype, wR.device)
@@ -104,12 +103,14 @@ class _Compose(torch.autograd.Function):
             g_s = zero.expand(n, 3)
         if design is not None:
             g_s = _threshold_backward(g_s, s, ctx.min_scale)  # the clamp lets it through above min_scale
-        g_e = g_s * e
-        g_t = g_s if g_ds_w is None else g_s + g_ds_w  # local: t = e + d_s
+        g_sw = g_s * w  # local: d s / d t = w, t = exp(log_s) + d_s
         if need_ds:
-            g_ds = g_t * w if design == "local" else g_s
+            if design == "paper":
+                g_ds = g_s
+            elif design == "local":
+                g_ds = g_sw if g_ds_w is None else torch.addcmul(g_sw, g_ds_w, w)
         if need_scales:
-            g_log_scales = g_e * w
+            g_log_scales = g_sw * e
 
         # rotations: r* = L unit(r), r' = r* (x) unit(1 + d_r) = R(unit(1 + d_r)) r* = L(r*) unit(1 + d_r)
         if g_r is None:
@@ -133,7 +134,10 @@ class _Compose(torch.autograd.Function):
             g_wR = torch.bmm(g_mu.unsqueeze(-1), a.unsqueeze(-2))
             if design == "local" and g_dmu_w is not None:
                 g_wR = torch.baddbmm(g_wR, g_dmu_w.unsqueeze(-1), d_mu.unsqueeze(-2))
-            g_w = (g_e if design != "local" else torch.addcmul(g_e, g_t, d_s)).sum(-1, keepdim=True)
+            g_e = g_s * e
+            if design == "local":  # d s / d w = t = e + d_s; d d_s_w / d w = d_s
+                g_e = torch.addcmul(g_e, g_s if g_ds_w is None else g_s + g_ds_w, d_s)
+            g_w = g_e.sum(-1, keepdim=True)
             g_L = torch.bmm(g_rs.unsqueeze(-1), u[0].unsqueeze(-2))
             g_frames = zero.expand(n, 9) if g_frames is None else g_frames.reshape(n, 9)
             g_g = torch.cat((g_frames, g_wR.reshape(n, 9), g_mu, g_w, g_L.reshape(n, 16)), dim=-1)
