@@ -249,6 +249,57 @@ def test_sh_colors_match_the_basis_formula():
                     torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
+def _view_colors_plain(sh, degree, means, viewmat, frames):
+    """The colours from sh_basis (one autograd operation per basis term), the view direction turned into
+    the frames' axes: the reference for view_colors' written-out backward."""
+    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    dirs = torch.einsum("nji,nj->ni", frames, means - campos)
+    k = (degree + 1) ** 2
+    return torch.clamp_min((sh_basis(degree, dirs)[:, :, None] * sh[:, :k]).sum(1) + 0.5, 0.0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_view_colors_gradients_match_the_plain_formula(device, degree):
+    """Values and gradients w.r.t. the coefficients, the positions, the frames and the camera, float64,
+    with a Gaussian at the camera centre (direction shorter than eps) and clamped (negative) colours."""
+    from rmavatar.render.project import view_colors
+
+    g = torch.Generator().manual_seed(2)
+    n = 50
+    viewmat = torch.eye(4, dtype=F64)
+    viewmat[:3, :3] = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=F64)).Q
+    viewmat[:3, 3] = torch.tensor([0.1, 0.2, 3.0], dtype=F64)
+    means = torch.randn(n, 3, generator=g, dtype=F64)
+    means[0] = -viewmat[:3, :3].T @ viewmat[:3, 3]  # at the camera: no direction
+    frames = torch.randn(n, 3, 3, generator=g, dtype=F64)  # any matrices: the formula does not need rotations
+    sh = torch.randn(n, 16, 3, generator=g, dtype=F64) * 0.5
+    inputs = [t.to(device).requires_grad_(True) for t in (sh, means, viewmat, frames)]
+    ours = view_colors(inputs[0], degree, inputs[1], inputs[2], inputs[3])
+    plain = _view_colors_plain(inputs[0], degree, inputs[1], inputs[2], inputs[3])
+    assert (plain == 0).any() and (plain > 0).any()  # both sides of the clamp
+    torch.testing.assert_close(ours, plain, rtol=0, atol=1e-13)
+    grad = torch.randn(n, 3, generator=g, dtype=F64).to(device)
+    for a, b in zip(torch.autograd.grad(ours, inputs, grad), torch.autograd.grad(plain, inputs, grad)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_view_colors_pass_gradcheck(degree):
+    from rmavatar.render.project import sh_to_rgb, view_colors
+
+    g = torch.Generator().manual_seed(3)
+    n = 5
+    viewmat = torch.eye(4, dtype=F64)
+    viewmat[:3, 3] = torch.tensor([0.1, 0.2, 3.0], dtype=F64)
+    inputs = [torch.randn(n, (degree + 1) ** 2, 3, generator=g, dtype=F64) * 0.1]  # colours stay above 0
+    inputs += [torch.randn(n, 3, generator=g, dtype=F64), viewmat, torch.randn(n, 3, 3, generator=g, dtype=F64)]
+    inputs = [t.requires_grad_(True) for t in inputs]
+    assert torch.autograd.gradcheck(lambda sh, m, v, f: view_colors(sh, degree, m, v, f), inputs)
+    campos = torch.tensor([0.3, -0.2, 2.5], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda sh, m, c: sh_to_rgb(sh, degree, m, c), (inputs[0], inputs[1], campos))
+
+
 def test_gsplat_backend_without_gsplat_is_a_clear_error():
     pytest.importorskip("torch")
     try:

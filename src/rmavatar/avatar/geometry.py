@@ -109,7 +109,22 @@ def _shepperd_table() -> tuple:
     return tuple(map(tuple, table))
 
 
+def _right_table() -> tuple:
+    """[4,16]: b @ table = R(b) flattened, where R(b) a = a (x) b (Hamilton product, wxyz).
+
+    From _left_table's entries: (a (x) b)_i = sum_j sign_ij a[k_ij] b[j], so R(b)[i][k_ij] = sign_ij b[j]."""
+    left = _left_table()
+    table = [[0.0] * 16 for _ in range(4)]
+    for k in range(4):
+        for ij, sign in enumerate(left[k]):
+            if sign:
+                i, j = divmod(ij, 4)
+                table[j][4 * i + k] = sign
+    return tuple(map(tuple, table))
+
+
 _LEFT = _left_table()
+_RIGHT = _right_table()
 _SHEPPERD = _shepperd_table()
 
 
@@ -121,6 +136,11 @@ def quat_identity(dtype: torch.dtype = torch.float32, device=None) -> torch.Tens
 def quat_left_matrix(a: torch.Tensor) -> torch.Tensor:
     """L(a) [...,4,4] with L(a) b = a (x) b for quaternions a [...,4] (wxyz): one matrix product."""
     return (a @ constant(_LEFT, a.dtype, a.device)).unflatten(-1, (4, 4))
+
+
+def quat_right_matrix(b: torch.Tensor) -> torch.Tensor:
+    """R(b) [...,4,4] with R(b) a = a (x) b for quaternions b [...,4] (wxyz): one matrix product."""
+    return (b @ constant(_RIGHT, b.dtype, b.device)).unflatten(-1, (4, 4))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

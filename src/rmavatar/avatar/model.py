@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from rmavatar.avatar.geometry import (quat_identity, quat_left_matrix, quat_multiply, rotmat_to_quat, triangle_frames,
-                                     unit_rows)
+from rmavatar.avatar.compose import compose_gaussians
+from rmavatar.avatar.geometry import quat_left_matrix, rotmat_to_quat, triangle_frames
 from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
@@ -312,7 +312,14 @@ class Avatar(nn.Module):
     def posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
         """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3] (``table``: as in
         :meth:`forward`)."""
-        return self._posed(vertices, table)[:3]
+        g, _ = self._posed(vertices, table)
+        return compose_gaussians(g, self.means, self.quats, self.log_scales)[:3]
+
+    def _posed_means(self, g: torch.Tensor) -> torch.Tensor:
+        """mu* = w R mu + M [N,3] alone, from the face rows ``g`` of :meth:`_posed` (the paper's
+        rectifier reads it)."""
+        wR = g[:, 9:18].unflatten(-1, (3, 3))
+        return torch.baddbmm(g[:, 18:21].unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
 
     def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
         """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
@@ -351,7 +358,7 @@ class Avatar(nn.Module):
                           quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
 
     def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
-        """mu*, r*, s* and, per Gaussian, its triangle's frame R [N,3,3], scale w [N] and w R [N,3,3],
+        """Every Gaussian's row g [N,38] of the posed mesh's face table (``compose_gaussians`` reads it)
         and its index into the binding faces, slot [N]. ``table``: :meth:`face_table` of ``vertices``,
         when the caller has it (then ``vertices`` is not read)."""
         if table is None:
@@ -364,12 +371,7 @@ class Avatar(nn.Module):
                              f"mesh), got {tuple(table.shape)}")
         slot = self._face_slot()
         g = table[slot]
-        frames, wR, M, w = g[:, 0:9].unflatten(-1, (3, 3)), g[:, 9:18].unflatten(-1, (3, 3)), g[:, 18:21], g[:, 21]
-        mu_star = torch.baddbmm(M.unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
-        r = unit_rows(self.quats, 1e-12)
-        r_star = (g[:, 22:38].unflatten(-1, (4, 4)) @ r.unsqueeze(-1)).squeeze(-1)
-        s_star = w.unsqueeze(-1) * torch.exp(self.log_scales)
-        return mu_star, r_star, s_star, frames, w, wR, slot
+        return g, slot
 
     def _face_slot(self) -> torch.Tensor:
         """Index of every Gaussian's face in ``binding_faces`` [N]; computed (and checked, a host sync)
@@ -399,8 +401,8 @@ class Avatar(nn.Module):
             raise ValueError("this avatar has no rectifier")
         if self.config.rectifier == "local":
             return self._rectify(None, self._face_slot(), body_pose)
-        mu, _, _, _, _, _, slot = self._posed(vertices)
-        return self._rectify(mu, slot, body_pose)
+        g, slot = self._posed(vertices)
+        return self._rectify(self._posed_means(g), slot, body_pose)
 
     def _rectify(self, mu: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
         if body_pose is None:
@@ -421,22 +423,23 @@ class Avatar(nn.Module):
         rectifier's raw outputs from :meth:`rectify` to use instead of running it (test-time pose
         fitting holds them fixed between refreshes); table: :meth:`face_table` of ``vertices`` (training
         passes each frame's, computed once; ``vertices`` may then be None)."""
-        mu, r, s, frames, w, wR, slot = self._posed(vertices, table)
-        offsets = None
+        g, slot = self._posed(vertices, table)
+        raw = None
         if self.rectifier is not None:
-            d_mu, d_s, d_r = rectified if rectified is not None else self._rectify(mu, slot, body_pose)
-            if self.config.rectifier == "local":
-                # from the triangle's frame (units of w) to world space: turns and scales with it
-                d_mu = (wR @ d_mu.unsqueeze(-1)).squeeze(-1)
-                d_s = w.unsqueeze(-1) * d_s
-            mu = mu + d_mu
-            dq = unit_rows(d_r + quat_identity(d_r.dtype, d_r.device), 1e-12)
-            r = quat_multiply(r, dq)
-            s = (s + d_s).clamp_min(self.config.min_scale)
-            offsets = (d_mu, d_s, d_r)
+            if rectified is not None:
+                raw = rectified
+            elif self.config.rectifier == "local":
+                raw = self._rectify(None, slot, body_pose)
+            else:
+                raw = self._rectify(self._posed_means(g), slot, body_pose)
+        # the local design's offsets are in the triangle's frame (units of w): they turn and scale with it
+        mu, r, s, frames, offsets = compose_gaussians(g, self.means, self.quats, self.log_scales, raw,
+                                                      self.config.rectifier or None, self.config.min_scale)
         deg = host_scalar(self, "active_sh_degree", int)
         k = (deg + 1) ** 2
-        sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, self.sh_rest[:, : k - 1]), dim=1)
+        # all stored bands on: the whole tensor, not a slice (whose backward would copy into zeros)
+        rest = self.sh_rest if k - 1 == self.sh_rest.shape[1] else self.sh_rest[:, : k - 1]
+        sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, rest), dim=1)
         return GaussianSet(
             means=mu,
             quats=r,

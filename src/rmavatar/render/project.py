@@ -12,6 +12,7 @@ here, 0.3 px^2 low-pass dilation of the 2D covariance, near plane 0.01, and an o
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -166,6 +167,7 @@ _SH_POLYNOMIALS = {
 }
 
 
+@functools.lru_cache(maxsize=None)
 def _sh_table(degree: int) -> tuple:
     """[4^degree, (degree+1)^2]: the products of ``degree`` factors of (1, x, y, z) (flattened, first
     factor slowest) times this table are the SH basis values; each monomial is read from one product."""
@@ -179,28 +181,96 @@ def _sh_table(degree: int) -> tuple:
     return tuple(map(tuple, table))
 
 
-def _sh_colors(sh: Tensor, degree: int, dirs: Tensor) -> Tensor:
-    """``max(SH(dirs) . sh + 0.5, 0)`` [N,3] for directions [N,3] (normalised here).
+@functools.lru_cache(maxsize=None)
+def _sh_derivative_table(degree: int) -> tuple:
+    """[(degree+1)^2, 3 * 4^(degree-1)]: the derivatives of the basis functions w.r.t. x, y, z, which are
+    polynomials of degree - 1. Column a * 4^(degree-1) + i holds the coefficient of the derivative along
+    axis a (x, y, z) on product i of ``degree - 1`` factors of (1, x, y, z), as in _sh_table."""
+    k, size = (degree + 1) ** 2, 4 ** (degree - 1)
+    table = [[0.0] * (3 * size) for _ in range(k)]
+    for j in range(1, k):
+        for coef, mono in _SH_POLYNOMIALS[j]:
+            for axis, var in enumerate("xyz"):
+                count = mono.count(var)
+                if count:
+                    rest = mono.replace(var, "", 1)  # d(var^count * rest) = count * var^(count-1) * rest
+                    factors = [0] * (degree - 1 - len(rest)) + ["_xyz".index(v) for v in rest]
+                    i = sum(f * 4 ** (degree - 2 - n) for n, f in enumerate(factors))
+                    table[j][axis * size + i] += coef * count
+    return tuple(map(tuple, table))
 
-    The basis is one matrix product of the direction's monomials (products of (1, x, y, z), two
-    broadcast multiplies for band 3) with a constant table, and the colour one batched product: a few
-    tensor operations instead of one per basis term (about 190 forward and backward for band 3)."""
-    if degree == 0:  # a constant basis: the direction does not matter
-        return torch.clamp_min(sh[:, 0] * _C0 + 0.5, 0.0)
-    k = (degree + 1) ** 2
-    d = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True).clamp_min(1e-12)
-    m = torch.nn.functional.pad(d, (1, 0), value=1.0)  # [N,4]: 1, x, y, z
-    mono = m
-    for _ in range(degree - 1):
-        mono = (mono.unsqueeze(-1) * m.unsqueeze(-2)).flatten(-2)  # [N, 4^degree]
-    basis = mono @ constant(_sh_table(degree), mono.dtype, mono.device)  # [N,K]
-    return torch.clamp_min((basis.unsqueeze(-2) @ sh[:, :k, :]).squeeze(-2) + 0.5, 0.0)
+
+_threshold_backward = torch.ops.aten.threshold_backward  # grad where x > threshold, else 0: one operation
+
+
+class _ViewColors(torch.autograd.Function):
+    """``max(SH(d) . sh + 0.5, 0)`` [N,3] along d = unit(R^T (means + alpha * offset)) (R: frames [N,3,3],
+    or the identity for None) with the backward written out: the basis derivative is a product of the
+    degree-1 monomials (kept from the forward) with a constant table, and the normalisation's and the
+    frames' gradients are a few batched products, about 22 operations forward and backward where
+    autograd records about 40. The clamp passes the gradient where the value is > 0 (autograd's clamp_min
+    also at exactly 0)."""
+
+    @staticmethod
+    def forward(ctx, sh, means, offset, frames, alpha, degree):
+        dtype, device = means.dtype, means.device
+        diff = torch.add(means, offset, alpha=alpha)  # the camera -> Gaussian direction, world axes
+        d = diff if frames is None else torch.bmm(diff.unsqueeze(-2), frames).squeeze(-2)  # R^T diff
+        norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+        clamped = norm.clamp_min(1e-12)
+        u = d / clamped
+        m = torch.nn.functional.pad(u, (1, 0), value=1.0)  # [N,4]: 1, x, y, z
+        prev, mono = None, m
+        for _ in range(degree - 1):
+            prev, mono = mono, (mono.unsqueeze(-1) * m.unsqueeze(-2)).flatten(-2)  # [N, 4^degree]
+        basis = mono @ constant(_sh_table(degree), dtype, device)  # [N,K]
+        half = constant(0.5, dtype, device).expand(means.shape[0], 1, 3)
+        out = torch.baddbmm(half, basis.unsqueeze(-2), sh).squeeze(-2).clamp_min(0.0)
+        ctx.degree, ctx.alpha = degree, alpha
+        ctx.save_for_backward(sh, frames, diff, norm, clamped, u, prev, basis, out)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        sh, frames, diff, norm, clamped, u, prev, basis, out = ctx.saved_tensors
+        need_sh, need_means, need_offset, need_frames = ctx.needs_input_grad[:4]
+        g_sh = g_means = g_offset = g_frames = None
+        grad = _threshold_backward(grad, out, 0.0)
+        if need_sh:
+            g_sh = torch.bmm(basis.unsqueeze(-1), grad.unsqueeze(-2))  # [N,K,3]
+        if need_means or need_offset or need_frames:
+            degree, n = ctx.degree, u.shape[0]
+            g_basis = torch.bmm(sh, grad.unsqueeze(-1)).squeeze(-1)  # [N,K]
+            g_u = g_basis @ constant(_sh_derivative_table(degree), u.dtype, u.device)  # [N, 3 * 4^(degree-1)]
+            if degree > 1:
+                g_u = torch.bmm(g_u.view(n, 3, -1), prev.unsqueeze(-1)).squeeze(-1)  # [N,3]
+            # u = d / max(|d|, eps): (g - u (u . g) [|d| > eps]) / max(|d|, eps)
+            radial = _threshold_backward(torch.bmm(g_u.unsqueeze(-2), u.unsqueeze(-1)).squeeze(-1), norm, 1e-12)
+            g_d = torch.addcmul(g_u, u, radial, value=-1.0) / clamped
+            if frames is None:
+                g_diff = g_d
+            else:
+                g_diff = torch.bmm(frames, g_d.unsqueeze(-1)).squeeze(-1)
+                if need_frames:
+                    g_frames = torch.bmm(diff.unsqueeze(-1), g_d.unsqueeze(-2))  # d (R^T diff)_j / d R_ij
+            g_means = g_diff
+            if need_offset:
+                g_offset = g_diff.sum(0) * ctx.alpha
+        return g_sh, g_means, g_offset, g_frames, None, None
+
+
+def _constant_colors(sh: Tensor) -> Tensor:
+    """Degree 0: ``max(C0 sh_0 + 0.5, 0)`` [N,3], the same from every direction."""
+    return torch.clamp_min(sh[:, 0] * _C0 + 0.5, 0.0)
 
 
 def sh_to_rgb(sh: Tensor, degree: int, means: Tensor, campos: Tensor) -> Tensor:
     """RGB [N,3] seen from ``campos`` [3]: SH coefficients sh [N,K,3] (K >= (degree+1)^2) evaluated
     along the camera->Gaussian direction, then ``max(value + 0.5, 0)`` as gsplat does."""
-    return _sh_colors(sh, degree, means - campos)
+    if degree == 0:
+        return _constant_colors(sh)
+    return _ViewColors.apply(sh[:, : (degree + 1) ** 2], means, campos.to(means), None, -1.0, degree)
 
 
 def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames: Tensor | None = None) -> Tensor:
@@ -210,13 +280,12 @@ def view_colors(sh: Tensor, degree: int, means: Tensor, viewmat: Tensor, frames:
     local axes: the view direction is turned into them first. None: world axes, as in a 3DGS file.
     """
     if degree == 0:
-        return _sh_colors(sh, 0, means)
+        return _constant_colors(sh)
     viewmat = viewmat.to(means)
-    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
-    dirs = means - campos
-    if frames is not None:
-        dirs = torch.einsum("nji,nj->ni", frames, dirs)  # R^T d
-    return _sh_colors(sh, degree, dirs)
+    # means - campos = means + R^T t (campos = -R^T t): one product, no negation
+    shift = viewmat[:3, :3].T @ viewmat[:3, 3]
+    k = (degree + 1) ** 2
+    return _ViewColors.apply(sh[:, :k], means, shift, frames, 1.0, degree)
 
 
 def _sample_dirs(n: int) -> torch.Tensor:
