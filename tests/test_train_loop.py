@@ -256,10 +256,13 @@ def test_ablations_and_backgrounds_run(data, tmp_path):
     assert train(cfg, tmp_path / "black", progress=False).iteration == 2
 
 
-def test_bench_step_measures_every_stage(data):
+@pytest.mark.parametrize("refine_poses", [False, True])
+def test_bench_step_measures_every_stage(data, refine_poses):
     from rmavatar.bench.step import measure
 
-    res = measure(data, SIZE, steps=2, warmup=1, threads=1, device="cpu", gaussians=None, rectifier=True)
+    res = measure(data, SIZE, steps=2, warmup=1, threads=1, device="cpu", gaussians=None, rectifier=True,
+                  count_steps=2, refine_poses=refine_poses)
+    assert res["refine_poses"] is refine_poses and res["counts"]["syncs_per_step"] == 0
     assert set(res["stages"]) == {"body_forward", "mesh_embedding", "rectifier", "rasterizer_forward",
                                   "rasterizer_backward", "losses", "optimizer"}
     assert res["step_median_s"] > 0 and res["gaussians"] > 20_000

@@ -49,6 +49,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
     one = {k: torch.as_tensor(params[k][:1], dtype=torch.float32, device=dev)
            for k in ("betas", "global_orient", "body_pose", "transl")}
     verts, pose, table = trainer.frame_body(i, trainer.iteration)
+    verts = verts.detach()  # the stages are timed again and again: not through a refined pose's graph
     bg = background_color(cfg.background, trainer.bg_generator, dev)
     target = trainer.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
     units = trainer.target_units[i] if trainer.target_units is not None and bg is trainer._cached_bg else None
