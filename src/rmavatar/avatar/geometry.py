@@ -63,7 +63,8 @@ def triangle_frames(
         raise ValueError(f"vertices must be [B,V,3] or [V,3], got {tuple(vertices.shape)}")
     if faces.dim() != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must be [F,3], got {tuple(faces.shape)}")
-    tri = vertices[..., faces, :]  # [B,F,3,3]: corner, xyz
+    # [B,F,3,3]: corner, xyz; index_select, whose backward (index_add) is twice as fast on CPU as indexing's
+    tri = vertices.index_select(-2, faces.reshape(-1)).unflatten(-2, faces.shape)
     e1, e2 = (tri[..., 1:, :] - tri[..., :1, :]).unbind(-2)  # both edges from v0 in one operation
     n1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
     a0 = e1 / n1.clamp_min(_EPS)
