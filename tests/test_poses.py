@@ -85,6 +85,9 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
         load_config(tmp_path / "bad.yaml")
     with pytest.raises(UserError, match="pose_warmup"):
         OptimConfig(pose_warmup=1.0).validate()
+    for bad in (-1, 1.5, True):
+        with pytest.raises(UserError, match="smooth_poses"):
+            OptimConfig(smooth_poses=bad).validate()
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():
@@ -171,3 +174,37 @@ def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():
     assert CHECKPOINT_VERSION == 4
     migrated = _MIGRATIONS[3]({"format": "rmavatar-checkpoint", "version": 3, "iteration": 5})
     assert migrated["version"] == 4 and migrated["poses"] is None and migrated["iteration"] == 5
+
+
+def test_smoothing_removes_jitter_but_keeps_fast_motion():
+    """smooth_poses: on a still pose with 3 degrees of frame-to-frame noise the average of +-2 frames is
+    much closer to the truth; a joint turning 60 degrees per frame (fast motion) is left as it is; frames
+    whose numbers are far apart are not neighbours; the frames' order does not matter; radius 0 is
+    the identity."""
+    from rmavatar.body import smooth_poses
+
+    gen = torch.Generator().manual_seed(0)
+    n = 20
+    truth = PoseSequence(torch.full((n, 3), 0.3), torch.full((n, 69), -0.2), torch.zeros(n, 3))
+    noisy = apply_pose_corrections(truth, torch.cat((torch.randn(n, 72, generator=gen) * math.radians(3),
+                                                     torch.zeros(n, 3)), 1))
+    before = pose_error(noisy, truth)["joint_angle_deg"]
+    after = pose_error(smooth_poses(noisy, range(n), 2), truth)["joint_angle_deg"]
+    assert after < 0.6 * before, (before, after)
+    same = smooth_poses(noisy, range(n), 0)
+    assert torch.equal(same.body_pose, noisy.body_pose)
+    # gaps: frame numbers 10 apart are not within radius 2, so nothing is averaged
+    apart = smooth_poses(noisy, range(0, 10 * n, 10), 2)
+    assert pose_error(apart, noisy)["joint_angle_deg"] < 1e-3
+    # order: shuffled frames give each frame the same result
+    perm = torch.randperm(n, generator=gen)
+    shuffled = smooth_poses(noisy.select(perm), perm.tolist(), 2)
+    assert pose_error(shuffled, smooth_poses(noisy, range(n), 2).select(perm))["joint_angle_deg"] < 1e-3
+    # fast motion: the global orientation turns 60 degrees per frame about y, no noise
+    angles = torch.arange(n, dtype=torch.float32) * math.radians(60)
+    turning = PoseSequence(torch.stack((torch.zeros(n), angles, torch.zeros(n)), 1), torch.zeros(n, 69),
+                           torch.zeros(n, 3))
+    kept = smooth_poses(turning, range(n), 2)
+    assert pose_error(kept, turning)["joint_angle_deg"] < 0.05
+    with pytest.raises(ValueError, match="frame_ids"):
+        smooth_poses(noisy, range(n - 1), 2)

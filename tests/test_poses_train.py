@@ -113,3 +113,19 @@ def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_pa
     print("PSNR without / with fitting:", plain["mean"]["psnr"], fitted["mean"]["psnr"],
           "pose error:", fitted["pose_error"])
     assert fitted["mean"]["psnr"] > plain["mean"]["psnr"]
+
+
+def test_a_run_from_before_pose_smoothing_resumes_from_its_poses_as_given(noisy, tmp_path):
+    """A checkpoint whose config predates optim.smooth_poses refined the dataset's poses as given: it
+    resumes as smooth_poses 0 (the default 2 would change the poses it refines and be refused)."""
+    from rmavatar.train.checkpoint import save_checkpoint
+
+    cfg = _cfg(noisy, 4)
+    cfg.optim.smooth_poses = 0
+    train(cfg, tmp_path / "old", progress=False)
+    path = checkpoint_path(tmp_path / "old")
+    payload = read_checkpoint(path)
+    del payload["config"]["optim"]["smooth_poses"]
+    save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
+    done = train(None, tmp_path / "old", resume=True, overrides=[(6, "optim", "iters")], progress=False)
+    assert done.iteration == 6

@@ -7,7 +7,8 @@
 from __future__ import annotations
 
 from rmavatar.body.base import SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, BodyOutput
-from rmavatar.body.corrections import CORRECTION_DIM, apply_pose_corrections, joint_angle_errors, pose_error
+from rmavatar.body.corrections import (CORRECTION_DIM, apply_pose_corrections, joint_angle_errors, pose_error,
+                                      smooth_poses)
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
 from rmavatar.body.motion import Motion, load_motion, motion_to_sequence
 from rmavatar.body.poses import PoseSequence, posed_vertices, rest_pose
@@ -16,7 +17,7 @@ from rmavatar.utils import UserError
 __all__ = [
     "BodyModel", "BodyOutput", "CORRECTION_DIM", "Motion", "PoseSequence", "SMPL_JOINT_NAMES", "SMPL_PARENTS",
     "apply_pose_corrections", "axis_angle_to_matrix", "global_rotations", "joint_angle_errors", "lbs", "load_body_model", "load_motion", "motion_to_sequence",
-    "pose_error", "posed_vertices", "rest_pose",
+    "pose_error", "posed_vertices", "rest_pose", "smooth_poses",
 ]  # fmt: skip
 
 _GENDERS = ("neutral", "male", "female")

@@ -38,6 +38,9 @@ class OptimConfig:
     lr_pose_transl: float = 5e-4  # translation corrections, metres per Adam step
     lr_pose_final_scale: float = 0.1  # both decay log-linearly to this fraction at the last iteration
     pose_warmup: float = 0.1  # fraction of the run with frozen corrections (the avatar takes shape first)
+    # With refinement, the estimated poses are first averaged over +-this many frames of their video
+    # (body.smooth_poses: tracker jitter is frame-to-frame); 0 = off.
+    smooth_poses: int = 2
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
@@ -50,6 +53,8 @@ class OptimConfig:
             raise UserError("optim.lr_pose and optim.lr_pose_transl must be >= 0")
         if not 0 < self.lr_pose_final_scale <= 1:
             raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
+        if not isinstance(self.smooth_poses, int) or isinstance(self.smooth_poses, bool) or self.smooth_poses < 0:
+            raise UserError(f"optim.smooth_poses must be a whole number of frames >= 0, got {self.smooth_poses!r}")
         if not 0 <= self.pose_warmup < 1:
             raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
         return self

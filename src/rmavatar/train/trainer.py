@@ -33,7 +33,7 @@ from rmavatar.avatar.trained import (
     read_checkpoint,
     training_betas,
 )
-from rmavatar.body import PoseSequence, load_body_model, posed_vertices
+from rmavatar.body import PoseSequence, load_body_model, posed_vertices, smooth_poses
 from rmavatar.data import load_dataset
 from rmavatar.data.registry import parse_spec
 from rmavatar.render.gaussians import render_gaussians
@@ -212,7 +212,10 @@ def train(
     check_writable_folder(run_dir / "config.yaml", f"--out {run_dir}", create=True)
     if resume:
         ckpt = _resume_payload(run_dir, data)
-        cfg = from_dict(TrainConfig, ckpt["config"], where=f"{checkpoint_path(run_dir)}:config")
+        saved = ckpt["config"]
+        if "smooth_poses" not in saved.get("optim", {}):  # a run from before pose smoothing refined its poses as given
+            saved = {**saved, "optim": {**saved.get("optim", {}), "smooth_poses": 0}}
+        cfg = from_dict(TrainConfig, saved, where=f"{checkpoint_path(run_dir)}:config")
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
         if cfg.optim.iters < int(ckpt["iteration"]):
@@ -309,8 +312,10 @@ class Trainer:
         dev = self.device
         self.body.to(dev)
         poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+        if cfg.optim.refines_poses(self.dataset.poses_estimated):  # refinement starts from the smoothed poses
+            poses = smooth_poses(poses, params["index"], cfg.optim.smooth_poses)
         self.vertices = posed_vertices(self.body, poses, params["betas"]).to(dev)  # [n,V,3], fixed for the run
-        self.body_pose = torch.as_tensor(params["body_pose"], dtype=torch.float32, device=dev)  # [n,69]
+        self.body_pose = poses.body_pose.to(dev)  # [n,69]
         cams = [self.dataset.camera(split, i) for i in range(n)]
         self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32, device=dev)
         self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32, device=dev)
