@@ -162,7 +162,8 @@ def test_fit_config_refuses_bad_settings():
     from rmavatar.evaluate.fit import FitConfig
 
     for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
-                       ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales")):
+                       ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"smooth": -1}, "smoothing"),
+                       ({"smooth": 1.5}, "smoothing")):
         with pytest.raises(UserError, match=match):
             FitConfig(**bad).validate()
     assert "4x4 then 2x2 then 1x1" in FitConfig().protocol()["loss"]

@@ -3,6 +3,7 @@ noisy synthetic subject: resume keeps the refined poses bit-identical, the refin
 folder and the trained avatar, --fit-poses never touches the checkpoint and fits the frames better."""
 
 import hashlib
+import json
 import os
 import signal
 
@@ -110,6 +111,8 @@ def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_pa
                           fit=FitConfig(steps=15, batch=3, lr_rotation=0.01))
     assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == before
     assert fitted["protocol"]["fit_poses"] == 15 and plain["protocol"]["fit_poses"] is None
+    assert fitted["protocol"]["fit_poses_settings"]["smooth_frames"] == 2
+    assert "averaged over +-2 frames" in json.dumps(fitted["protocol"])
     print("PSNR without / with fitting:", plain["mean"]["psnr"], fitted["mean"]["psnr"],
           "pose error:", fitted["pose_error"])
     assert fitted["mean"]["psnr"] > plain["mean"]["psnr"]

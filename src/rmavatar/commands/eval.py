@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit-poses", type=int, nargs="?", const=100, default=None, metavar="STEPS",
                         help="fit every evaluated frame's pose (joint rotations and translation) to its image "
                              "and mask before scoring, STEPS Adam steps (default 100); off unless given")
+    parser.add_argument("--fit-smooth", type=int, default=2, metavar="FRAMES",
+                        help="with --fit-poses, first average each given pose with its neighbours within FRAMES "
+                             "frames, per joint, weighted by closeness (default 2; 0 = fit from the poses as given)")
     parser.add_argument("--fit-batch", type=int, default=8, metavar="B",
                         help="frames fitted together with --fit-poses (default 8; lower it if memory runs out)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N")
@@ -77,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.fit_poses is not None:
         from rmavatar.evaluate.fit import FitConfig
 
-        fit = FitConfig(steps=args.fit_poses, batch=args.fit_batch).validate()
+        fit = FitConfig(steps=args.fit_poses, batch=args.fit_batch, smooth=args.fit_smooth).validate()
     result = evaluate_run(
         args.run, data=args.data, split=args.split, bg=args.bg, size=args.size, out_dir=images,
         device=args.device, max_frames=args.frames, progress=not args.quiet, overwrite=args.overwrite, fit=fit,

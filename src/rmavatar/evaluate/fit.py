@@ -49,6 +49,9 @@ class FitConfig:
     # measured +0.4 dB at 50 steps).
     scales: tuple[int, ...] = (4, 2, 1)
     refresh: int = 10  # steps between re-running the rectifier and the view-dependent colours
+    # The split's given poses are first averaged over +-this many frames (body.smooth_poses: tracker
+    # jitter is frame-to-frame); 0 = fit from the poses as given.
+    smooth: int = 2
 
     def validate(self) -> "FitConfig":
         if self.steps < 1:
@@ -57,12 +60,15 @@ class FitConfig:
             raise UserError(f"the pose-fitting batch must be >= 1 frame, got {self.batch}")
         if self.refresh < 1:
             raise UserError(f"the pose fit's refresh interval must be >= 1 step, got {self.refresh}")
+        if not isinstance(self.smooth, int) or isinstance(self.smooth, bool) or self.smooth < 0:
+            raise UserError(f"the pose fit's smoothing must be a whole number of frames >= 0, got {self.smooth!r}")
         if not self.scales or any(int(k) != k or k < 1 for k in self.scales):
             raise UserError(f"the pose fit's scales must be whole numbers >= 1, got {self.scales}")
         return self
 
     def protocol(self) -> dict:
-        return {"steps": self.steps, "batch": self.batch, "lr_rotation": self.lr_rotation,
+        return {"steps": self.steps, "batch": self.batch, "smooth_frames": self.smooth,
+                "lr_rotation": self.lr_rotation,
                 "lr_translation": self.lr_translation, "final_scale": self.final_scale,
                 "loss": f"mean |render - ground truth| (RGB) + {self.silhouette} x mean |alpha - mask|, on "
                         f"{' then '.join(f'{k}x{k}' for k in self.scales)} pixel blocks (equal shares of the steps)",

@@ -96,7 +96,7 @@ def evaluate_run(
     from tqdm import tqdm
 
     from rmavatar.avatar.trained import load_trained
-    from rmavatar.body import PoseSequence, pose_error, posed_vertices
+    from rmavatar.body import PoseSequence, pose_error, posed_vertices, smooth_poses
     from rmavatar.data import load_dataset
     from rmavatar.data.synth import true_poses
     from rmavatar.evaluate.metrics import lpips, psnr, ssim
@@ -128,6 +128,9 @@ def evaluate_run(
     if min(width, height) < 32:
         raise UserError(f"images of {width}x{height} are too small to score (LPIPS needs 32x32); pass a larger size")
     background = torch.tensor(BACKGROUNDS[bg], dtype=torch.float32, device=dev)
+    if fit is not None and fit.smooth and pose_source == "the dataset's":
+        poses = smooth_poses(poses, params["index"], fit.smooth)  # over the whole split, before the first n
+        pose_source += f", averaged over +-{fit.smooth} frames"
     poses = poses.select(slice(0, n))
     if fit is not None:
         from rmavatar.evaluate.fit import fit_poses
