@@ -52,7 +52,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
     verts = verts.detach()  # the stages are timed again and again: not through a refined pose's graph
     bg = background_color(cfg.background, trainer.bg_generator, dev)
     target = trainer.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
-    units = trainer.target_units[i] if trainer.target_units is not None and bg is trainer._cached_bg else None
+    units = trainer.target_lpips_units(i, bg)
     out = {}
 
     with torch.no_grad():

@@ -104,7 +104,7 @@ class LPIPSAlex(nn.Module):
         """The five layers' unit features f / (|f| + 1e-10) of images ``y`` [B,3,H,W] in [0, 1], without
         gradient: all that the distance needs of a target, so a target scored many times (a training
         frame) is run through the network once."""
-        return [f / (torch.linalg.vector_norm(f, dim=1, keepdim=True) + 1e-10) for f in self.features(y)]
+        return [_unit(f)[0] for f in self.features(y)]
 
 
 class _Distance(torch.autograd.Function):
@@ -124,10 +124,7 @@ class _Distance(torch.autograd.Function):
         b = feats[0].shape[0]
         saved, sums = [], []
         for fx, fy in zip(feats[:layers], feats[layers:]):
-            f = torch.cat([fx, fy])  # both images' features normalised in one go
-            n = torch.linalg.vector_norm(f, dim=1, keepdim=True)
-            denom = n + 1e-10
-            u = f / denom
+            u, n, denom = _unit(torch.cat([fx, fy]))  # both images' features normalised in one go
             d = (u[:b] - u[b:]).flatten(2)  # [B,C,HW]
             sums.append((d.unsqueeze(2) @ d.unsqueeze(3)).flatten(1))  # [B,C]: sum over pixels of d^2
             saved += [d, u, n, denom]
@@ -156,11 +153,20 @@ class _Distance(torch.autograd.Function):
         return (None, None, *gx, *gy)
 
 
-def _through_norm(g, u, n, denom, tiny):
+def _unit(f):
+    """(u, n, n + 1e-10) with u = f / (|f| + 1e-10) per pixel, n = |f| over the channels of f [B,C,H,W]."""
+    n = torch.linalg.vector_norm(f, dim=1, keepdim=True)
+    denom = n + 1e-10
+    return f / denom, n, denom
+
+
+def _through_norm(g, u, n, denom, tiny, down=None):
     """The gradient g [B,C,H,W] w.r.t. u = f / (|f| + 1e-10) taken back to f: g / (n + e) - u (u . g) / n
-    (where |f| = 0, u = 0 and the second term is 0, as autograd's)."""
+    (where |f| = 0, u = 0 and the second term is 0, as autograd's); plus ``down``, a gradient w.r.t. f
+    from elsewhere, added in the same kernel that divides by n + e."""
     dot = torch.einsum("bchw,bchw->bhw", u, g).unsqueeze(1)  # u . g per pixel, one kernel
-    return torch.addcmul(g / denom, u, dot / n.clamp_min(tiny), value=-1.0)
+    scaled = g / denom if down is None else torch.addcdiv(down, g, denom)
+    return torch.addcmul(scaled, u, dot / n.clamp_min(tiny), value=-1.0)
 
 
 def _conv_size(hw, layer: int) -> tuple[int, int]:
@@ -198,9 +204,7 @@ class _ToUnits(torch.autograd.Function):
             a = F.conv2d(h, params[2 * i], params[2 * i + 1], stride=stride, padding=pad).relu_()
             acts.append(a)
             h = a
-            n = torch.linalg.vector_norm(a, dim=1, keepdim=True)
-            denom = n + 1e-10
-            u = a / denom
+            u, n, denom = _unit(a)
             d = (u - units[i]).flatten(2)  # [B,C,HW]
             sums.append((d.unsqueeze(2) @ d.unsqueeze(3)).flatten(1))  # [B,C]: sum over pixels of d^2
             saved += [d, u, n, denom]
@@ -223,18 +227,16 @@ class _ToUnits(torch.autograd.Function):
             d, u, n, denom = saved[4 * i: 4 * i + 4]
             c = d.shape[1]
             g = (d * gw[:, ends[i] - c:ends[i], None]).view(b, c, *u.shape[2:])
-            dot = torch.einsum("bchw,bchw->bhw", u, g).unsqueeze(1)
-            scaled = g / denom if g_down is None else torch.addcdiv(g_down, g, denom)
-            g_act = torch.addcmul(scaled, u, dot / n.clamp_min(tiny), value=-1.0)
+            g_act = _through_norm(g, u, n, denom, tiny, down=g_down)
             g_pre = _threshold_backward(g_act, acts[i], 0)
-            _, _, k, stride, pad = ALEX_CONVS[i]
+            stride, pad = ALEX_CONVS[i][3:]
             g_in = _convolution_backward(g_pre, inputs[i], kernels[i], None, (stride, stride), (pad, pad), (1, 1),
                                          False, (0, 0), 1, (True, False, False))[0]
             if i in (1, 2):  # back through the max pool onto the previous ReLU's output
                 g_in = _max_pool_backward(g_in, acts[i - 1], (3, 3), (2, 2), (0, 0), (1, 1), False, pools[i - 1])
             g_down = g_in
-        n_rest = 2 * layers + layers
-        return (g_down * gain if ctx.needs_input_grad[0] else None, *([None] * (4 + n_rest)))
+        # nothing for gain, offset, the two weights, the 2 x 5 conv tensors and the 5 target units
+        return (g_down * gain if ctx.needs_input_grad[0] else None, *([None] * (4 + 3 * layers)))
 
 
 _threshold_backward = torch.ops.aten.threshold_backward

@@ -44,7 +44,8 @@ class OptimConfig:
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
-                     nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier"))
+                     nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier",
+                                  "smooth_poses"))
         if self.iters < 1:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
@@ -53,8 +54,6 @@ class OptimConfig:
             raise UserError("optim.lr_pose and optim.lr_pose_transl must be >= 0")
         if not 0 < self.lr_pose_final_scale <= 1:
             raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
-        if not isinstance(self.smooth_poses, int) or isinstance(self.smooth_poses, bool) or self.smooth_poses < 0:
-            raise UserError(f"optim.smooth_poses must be a whole number of frames >= 0, got {self.smooth_poses!r}")
         if not 0 <= self.pose_warmup < 1:
             raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
         return self

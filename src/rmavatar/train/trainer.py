@@ -378,6 +378,10 @@ class Trainer:
             if n * sum(u.numel() * u.element_size() for u in first) <= budget:
                 self.target_units = [first] + [lpips_units(t) for t in self.targets[1:]]
 
+    def target_lpips_units(self, i: int, bg: torch.Tensor) -> list[torch.Tensor] | None:
+        """The cached LPIPS features of ``target(i, bg)`` (for ``total_loss(lpips_units=)``), or None."""
+        return self.target_units[i] if self.target_units is not None and bg is self._cached_bg else None
+
     def target(self, i: int, bg: torch.Tensor) -> torch.Tensor:
         """Frame ``i``'s image composited over the background ``bg`` [3]: [H,W,3] on the device."""
         if self.targets is not None and bg is self._cached_bg:
@@ -430,8 +434,7 @@ class Trainer:
         gs = self.avatar(vertices, body_pose, table=table)
         image, _, info = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height,
                                           background=bg, check=False)
-        units = self.target_units[i] if self.target_units is not None and bg is self._cached_bg else None
-        loss, parts = total_loss(image, target, gs, cfg.loss, lpips_units=units)
+        loss, parts = total_loss(image, target, gs, cfg.loss, lpips_units=self.target_lpips_units(i, bg))
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
         if self.poses is not None and self.poses.delta.grad is not None:
