@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections, joint_angle_errors, pose_error
+from rmavatar.body.corrections import pose_corrections
 from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
 from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError
@@ -60,6 +61,29 @@ def test_corrections_compose_on_the_left_and_undo_noise():
     np.testing.assert_allclose(joint_angle_errors(base, fixed).numpy(), lengths.numpy(), atol=2e-3)
 
 
+def test_pose_corrections_undo_apply_also_near_a_half_turn():
+    """pose_corrections(base, target) is the correction apply_pose_corrections needs to reach target,
+    checked in float64 with scipy's rotations, also for targets turned by nearly pi from the base."""
+    base = PoseSequence(*(getattr(_random_poses(5), k).double() for k in ("global_orient", "body_pose", "transl")))
+    rng = np.random.default_rng(7)
+    turn = Rotation.from_rotvec(rng.normal(size=(5 * 24, 3)))
+    turn = Rotation.from_rotvec(turn.as_rotvec() / np.linalg.norm(turn.as_rotvec(), axis=1, keepdims=True)
+                                * rng.uniform(0.0, math.pi - 1e-3, (5 * 24, 1)))
+    rv = torch.cat((base.global_orient, base.body_pose), 1).reshape(-1, 3).double().numpy()
+    target_rv = (turn * Rotation.from_rotvec(rv)).as_rotvec().reshape(5, 72)
+    target = PoseSequence(torch.tensor(target_rv[:, :3]), torch.tensor(target_rv[:, 3:]),
+                          torch.tensor(rng.normal(size=(5, 3))))
+    delta = pose_corrections(base, target)
+    assert delta.shape == (5, CORRECTION_DIM)
+    np.testing.assert_allclose(Rotation.from_rotvec(delta[:, :72].reshape(-1, 3).numpy()).as_matrix(),
+                               turn.as_matrix(), atol=1e-9)
+    back = apply_pose_corrections(base, delta)
+    assert pose_error(back, target)["joint_angle_deg"] < 1e-6
+    torch.testing.assert_close(back.transl, target.transl.to(back.transl))
+    with pytest.raises(ValueError, match="lengths"):
+        pose_corrections(base, target.select(slice(0, 2)))
+
+
 def test_corrections_have_finite_gradients_at_zero():
     base = _random_poses(2)
     delta = torch.zeros(2, CORRECTION_DIM, requires_grad=True)
@@ -88,6 +112,16 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     for bad in (-1, 1.5, True):
         with pytest.raises(UserError, match="smooth_poses"):
             OptimConfig(smooth_poses=bad).validate()
+    for bad in (0.75, [0.0], [1.0], ["x"], [True]):
+        with pytest.raises(UserError, match="pose_sweeps"):
+            OptimConfig(pose_sweeps=bad).validate()
+    with pytest.raises(UserError, match="pose_sweep_steps"):
+        OptimConfig(pose_sweep_steps=0).validate()
+    (tmp_path / "sweeps.yaml").write_text("optim:\n  pose_sweeps: [0.5, 0.8]\n")
+    cfg = load_config(tmp_path / "sweeps.yaml").validate()
+    assert cfg.optim.pose_sweeps == (0.5, 0.8)
+    cfg.optim.iters = 1000
+    assert cfg.optim.pose_sweep_iterations() == {500, 800}
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():
@@ -125,6 +159,15 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     assert torch.equal(other.delta, ref.delta) and torch.equal(other.steps, ref.steps)
     with pytest.raises(UserError, match="changed"):
         PoseRefiner(_random_poses(3, seed=5), None, cfg, torch.device("cpu")).load_state_dict(ref.state_dict(), "ckpt")
+    # A pose sweep's fitted poses become the corrected poses, and every frame's Adam starts afresh.
+    target = _random_poses(3, seed=9)
+    ref.set_poses(target)
+    assert pose_error(ref.poses(), target)["joint_angle_deg"] < 1e-3
+    assert ref.steps.sum() == 0 and ref.exp_avg.abs().sum() == 0 and ref.exp_avg_sq.abs().sum() == 0
+    ref.set_poses(PoseSequence(*(getattr(ref.base, k).cpu() for k in ("global_orient", "body_pose", "transl"))))
+    assert ref.delta.abs().max() < 1e-5
+    ref.delta.grad = grad.clone()
+    ref.step(1, 1, torch.tensor(True))
     # A step the trainer's device-side check rejects (a non-finite gradient) changes nothing.
     state = [t.detach().clone() for t in (ref.delta, ref.exp_avg, ref.exp_avg_sq, ref.steps)]
     bad = grad.clone()
@@ -163,10 +206,11 @@ def test_fit_config_refuses_bad_settings():
 
     for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
                        ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"smooth": -1}, "smoothing"),
-                       ({"smooth": 1.5}, "smoothing")):
+                       ({"smooth": 1.5}, "smoothing"), ({"prior": -0.1}, "prior")):
         with pytest.raises(UserError, match=match):
             FitConfig(**bad).validate()
     assert "4x4 then 2x2 then 1x1" in FitConfig().protocol()["loss"]
+    assert "0.01 x sum of the squared joint corrections" in FitConfig().protocol()["loss"]
 
 
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():

@@ -39,6 +39,23 @@ def apply_pose_corrections(poses: PoseSequence, delta: torch.Tensor) -> PoseSequ
     return PoseSequence(fixed[:, 0], fixed[:, 1:].reshape(n, 69), poses.transl.to(delta.dtype) + delta[:, -3:])
 
 
+def pose_corrections(base: PoseSequence, target: PoseSequence) -> torch.Tensor:
+    """The corrections [n,75] that take ``base`` to ``target``: the inverse of
+    :func:`apply_pose_corrections`, ``apply_pose_corrections(base, pose_corrections(base, target))``
+    equals ``target`` up to rounding. Each rotation is ``log(R_target R_base^T)``."""
+    n = len(base)
+    if len(target) != n:
+        raise ValueError(f"pose sets of different lengths: {n} and {len(target)}")
+
+    def rot(p: PoseSequence) -> torch.Tensor:
+        return torch.cat((p.global_orient, p.body_pose), 1).reshape(n, NUM_JOINTS, 3)
+
+    rb = rot(base)
+    rt = rot(target).to(rb)
+    delta = roma.rotvec_composition([rt, roma.rotvec_inverse(rb)])
+    return torch.cat((delta.reshape(n, NUM_JOINTS * 3), target.transl.to(rb) - base.transl), 1)
+
+
 def joint_angle_errors(a: PoseSequence, b: PoseSequence) -> torch.Tensor:
     """Geodesic angle in degrees between the matching joint rotations of ``a`` and ``b``: [n,24]
     (column 0 the global orientation), float64 on the CPU.

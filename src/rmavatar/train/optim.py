@@ -41,6 +41,14 @@ class OptimConfig:
     # With refinement, the estimated poses are first averaged over +-this many frames of their video
     # (body.smooth_poses: tracker jitter is frame-to-frame); 0 = off.
     smooth_poses: int = 2
+    # Pose sweeps: at these fractions of the run every training frame's pose is fitted to its image with
+    # the avatar held still (the evaluation's fitting, pose_sweep_steps Adam steps per frame), then
+    # training goes on from the fitted poses. Why: a frame's correction otherwise moves only on the ~1 in
+    # n steps that sample it, and until the density control's last opacity reset (0.7 of the run) the
+    # avatar is too unsettled to steer it; 1,000 steps over 100 frames left the corrections nearly where
+    # the smoothing put them. Empty = no sweeps.
+    pose_sweeps: tuple[float, ...] = (0.75,)
+    pose_sweep_steps: int = 30
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
@@ -56,6 +64,13 @@ class OptimConfig:
             raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
         if not 0 <= self.pose_warmup < 1:
             raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
+        bad = not isinstance(self.pose_sweeps, (list, tuple)) or any(
+            isinstance(f, bool) or not isinstance(f, (int, float)) for f in self.pose_sweeps)
+        if bad or any(not 0 < f < 1 for f in self.pose_sweeps):
+            raise UserError(f"optim.pose_sweeps must be fractions of the run in (0, 1), got {self.pose_sweeps!r}")
+        self.pose_sweeps = tuple(float(f) for f in self.pose_sweeps)
+        if self.pose_sweep_steps < 1:
+            raise UserError(f"optim.pose_sweep_steps must be >= 1, got {self.pose_sweep_steps}")
         return self
 
     def refines_poses(self, poses_estimated: bool) -> bool:
@@ -65,6 +80,10 @@ class OptimConfig:
     def pose_warmup_steps(self) -> int:
         """Steps with frozen pose corrections; refinement starts at step ``pose_warmup_steps() + 1``."""
         return round(self.pose_warmup * self.iters)
+
+    def pose_sweep_iterations(self) -> set[int]:
+        """The iteration counts after which the training poses are fitted (before the next step)."""
+        return {max(1, round(f * self.iters)) for f in self.pose_sweeps}
 
     def pose_lr_scale(self, iteration: int) -> float:
         """The pose corrections' lr factor before step ``iteration + 1``: 0 during the warm-up, then a

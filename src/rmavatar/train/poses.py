@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
-from rmavatar.body.corrections import correction_adam_step
+from rmavatar.body.corrections import correction_adam_step, pose_corrections
 from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError, atomic_path
 
@@ -77,6 +77,14 @@ class PoseRefiner:
                              rows, lr)
         for t, old in zip(state, before):
             t[rows] = torch.where(ok, t[rows], old)
+
+    @torch.no_grad()
+    def set_poses(self, poses: PoseSequence) -> None:
+        """Make ``poses`` (all n frames; a pose sweep's fitted ones) the corrected poses. Every frame's Adam
+        state starts afresh: its momentum pointed from the old pose."""
+        self.delta.copy_(pose_corrections(self.base, poses.to(self.delta.device)))
+        for t in (self.exp_avg, self.exp_avg_sq, self.steps):
+            t.zero_()
 
     @torch.no_grad()
     def poses(self) -> PoseSequence:

@@ -153,6 +153,20 @@ def keep_freed_memory() -> None:
 
 
 # ----------------------------------------------------------------------------------------------- training
+class _LazyFrames:
+    """A split's first n frames, decoded when indexed (a pose sweep over a long video at full size
+    would not fit in memory all at once)."""
+
+    def __init__(self, dataset, split: str, n: int):
+        self.dataset, self.split, self.n = dataset, split, n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int):
+        return self.dataset.frame(self.split, i)
+
+
 @dataclass
 class TrainResult:
     iteration: int  # the last completed iteration
@@ -190,6 +204,10 @@ class _Interrupt:
         return False
 
 
+# A resumed run whose config lacks a setting was trained without it: these values keep it that way.
+_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": ()}}
+
+
 def train(
     cfg: TrainConfig | None,
     run_dir: str | Path,
@@ -213,8 +231,10 @@ def train(
     if resume:
         ckpt = _resume_payload(run_dir, data)
         saved = ckpt["config"]
-        if "smooth_poses" not in saved.get("optim", {}):  # a run from before pose smoothing refined its poses as given
-            saved = {**saved, "optim": {**saved.get("optim", {}), "smooth_poses": 0}}
+        # Settings newer than the run take the values that reproduce how it was trained.
+        for section, values in _BEFORE_THE_SETTING.items():
+            old = {k: v for k, v in values.items() if k not in saved.get(section, {})}
+            saved = {**saved, section: {**saved.get(section, {}), **old}}
         cfg = from_dict(TrainConfig, saved, where=f"{checkpoint_path(run_dir)}:config")
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
@@ -481,7 +501,10 @@ class Trainer:
                    dynamic_ncols=True, desc="train")
         try:
             with _Interrupt() as stop:
+                sweeps = cfg.optim.pose_sweep_iterations() if self.poses is not None else set()
                 while self.iteration < total:
+                    if self.iteration in sweeps:  # after that iteration's checkpoint: a resume redoes it
+                        self.sweep_poses()
                     out = self.step()
                     self.iteration += 1
                     self._report(out, writer, history, bar)
@@ -537,6 +560,23 @@ class Trainer:
                             f"'poses:' change?); start a new run")
         if state is not None:
             self.poses.load_state_dict(state, where)
+
+    def sweep_poses(self) -> None:
+        """A pose sweep (``optim.pose_sweeps``): every training frame's corrected pose fitted to its image
+        and mask with the avatar held still (:func:`rmavatar.evaluate.fit.fit_poses`,
+        ``optim.pose_sweep_steps`` steps), then made the frame's new corrected pose."""
+        from rmavatar.evaluate.fit import FitConfig, fit_poses
+
+        split, n = self.cfg.data.split, len(self.poses)
+        # Any fixed background does: the targets are composited with their masks over the same one.
+        bg = background_color("black" if self.cfg.background == "black" else "white", self.bg_generator, self.device)
+        frames = _LazyFrames(self.dataset, split, n)
+        if self.progress:
+            print(f"pose sweep after iteration {self.iteration}: fitting the {n} training poses "
+                  f"({self.cfg.optim.pose_sweep_steps} steps each)", flush=True)
+        fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas, frames, bg,
+                           FitConfig(steps=self.cfg.optim.pose_sweep_steps), progress=self.progress)
+        self.poses.set_poses(fitted)
 
     def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Posed vertices [V,3], body_pose [69] and face table (``Avatar.face_table``, or None: to be
