@@ -39,8 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-offset-loss", action="store_true", help="ablation: offset regulariser weight 0")
     parser.add_argument("--no-scaling-loss", action="store_true", help="ablation: scaling regulariser weight 0")
     parser.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
-                        help="learn per-frame corrections of the training poses (default: on when the dataset's "
-                             "poses are estimated, as rmavatar capture's are; off otherwise)")
+                        help="learn per-frame corrections of the training poses, smoothed over +-2 frames "
+                             "first and fitted to every training image at 3/4 of the run (optim.smooth_poses, "
+                             "optim.pose_sweeps; docs/train.md). Default: on when the dataset's poses are "
+                             "estimated, as rmavatar capture's are; off otherwise")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
     parser.add_argument("--checkpoint-every", type=int, metavar="K", help="checkpoint interval in iterations")
