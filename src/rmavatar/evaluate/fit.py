@@ -22,6 +22,7 @@ states it (``protocol.fit_poses``).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -87,9 +88,10 @@ class FitConfig:
                              "avatar frozen"}  # fmt: skip
 
 
-def fit_poses(avatar, body, poses: PoseSequence, betas, frames: list, background: torch.Tensor,
+def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, background: torch.Tensor,
               cfg: FitConfig | None = None, progress: bool = False) -> PoseSequence:
-    """The poses of ``frames`` (Frame objects: image, mask, camera) fitted to their images.
+    """The poses of ``frames`` (a sequence of Frame objects: image, mask, camera; indexed one batch at a
+    time) fitted to their images.
 
     avatar, body: the Avatar and its body model (frozen: their parameters never change; training's
     pose sweeps call this with the avatar being trained); poses: the frames' starting poses; betas
