@@ -34,7 +34,7 @@ def apply_pose_corrections(poses: PoseSequence, delta: torch.Tensor) -> PoseSequ
     n = len(poses)
     if delta.shape != (n, CORRECTION_DIM):
         raise ValueError(f"delta must be [{n},{CORRECTION_DIM}], got {tuple(delta.shape)}")
-    rot = torch.cat((poses.global_orient, poses.body_pose), 1).reshape(n, NUM_JOINTS, 3).to(delta.dtype)
+    rot = poses.joint_rotvecs().to(delta.dtype)
     fixed = roma.rotvec_composition([delta[:, : NUM_JOINTS * 3].reshape(n, NUM_JOINTS, 3), rot])
     return PoseSequence(fixed[:, 0], fixed[:, 1:].reshape(n, 69), poses.transl.to(delta.dtype) + delta[:, -3:])
 
@@ -46,12 +46,8 @@ def pose_corrections(base: PoseSequence, target: PoseSequence) -> torch.Tensor:
     n = len(base)
     if len(target) != n:
         raise ValueError(f"pose sets of different lengths: {n} and {len(target)}")
-
-    def rot(p: PoseSequence) -> torch.Tensor:
-        return torch.cat((p.global_orient, p.body_pose), 1).reshape(n, NUM_JOINTS, 3)
-
-    rb = rot(base)
-    rt = rot(target).to(rb)
+    rb = base.joint_rotvecs()
+    rt = target.joint_rotvecs().to(rb)
     delta = roma.rotvec_composition([rt, roma.rotvec_inverse(rb)])
     return torch.cat((delta.reshape(n, NUM_JOINTS * 3), target.transl.to(rb) - base.transl), 1)
 
@@ -67,8 +63,7 @@ def joint_angle_errors(a: PoseSequence, b: PoseSequence) -> torch.Tensor:
         raise ValueError(f"pose sets of different lengths: {len(a)} and {len(b)}")
 
     def mats(p: PoseSequence) -> torch.Tensor:
-        rot = torch.cat((p.global_orient, p.body_pose), 1).detach().cpu().double()
-        return roma.rotvec_to_rotmat(rot.reshape(-1, NUM_JOINTS, 3))
+        return roma.rotvec_to_rotmat(p.joint_rotvecs().detach().cpu().double())
 
     R = mats(a).transpose(-1, -2) @ mats(b)
     cos = (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0
@@ -103,15 +98,15 @@ def smooth_poses(poses: PoseSequence, frame_ids, radius: int, sigma_deg: float =
         return poses
     order = torch.argsort(ids)
     ids = ids[order]
-    rot = torch.cat((poses.global_orient, poses.body_pose), 1).detach().cpu().double()[order]
-    R = roma.rotvec_to_rotmat(rot.reshape(n, NUM_JOINTS, 3))  # [n,24,3,3]
+    R = roma.rotvec_to_rotmat(poses.joint_rotvecs().detach().cpu().double()[order])  # [n,24,3,3]
     transl = poses.transl.detach().cpu().double()[order]
     total = torch.zeros_like(R)
     weight_sum = torch.zeros(n, NUM_JOINTS, dtype=torch.float64)
     t_total = torch.zeros_like(transl)
     for offset in range(-radius, radius + 1):  # frames with distinct numbers: neighbours lie within radius places
-        k = (torch.arange(n) + offset).clamp(0, n - 1)
-        near = ((ids[k] - ids).abs() <= radius) & (torch.arange(n) + offset >= 0) & (torch.arange(n) + offset < n)
+        shifted = torch.arange(n) + offset
+        k = shifted.clamp(0, n - 1)
+        near = ((ids[k] - ids).abs() <= radius) & (shifted >= 0) & (shifted < n)
         cos = ((R.transpose(-1, -2) @ R[k]).diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0
         angle = torch.arccos(cos.clamp(-1.0, 1.0))  # [n,24]
         w = torch.exp(-0.5 * (angle / math.radians(sigma_deg)) ** 2) * near[:, None]

@@ -39,6 +39,10 @@ class PoseSequence:
     def to(self, device) -> "PoseSequence":
         return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device))
 
+    def joint_rotvecs(self) -> torch.Tensor:
+        """[N,24,3]: the global orientation, then the 23 body joints, as axis-angle vectors."""
+        return torch.cat((self.global_orient, self.body_pose), 1).reshape(len(self), 24, 3)
+
 
 def rest_pose(kind: str = "tpose") -> PoseSequence:
     """A one-frame canonical pose at the origin: 'tpose' (all zero) or 'apose' (arms lowered 45 degrees
