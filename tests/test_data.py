@@ -117,6 +117,12 @@ def test_native_roundtrip(tmp_path):
     p = ds.params("train")
     np.testing.assert_allclose(p["transl"], params["transl"][[0, 2, 4]], atol=1e-6)
     assert list(p["index"]) == [0, 2, 4]
+    # frames(split[, n]): the first n frames, decoded when indexed, the same as frame() gives.
+    view = ds.frames("train", 2)
+    assert len(view) == 2 and [f.index for f in view] == [0, 2] and len(ds.frames("train")) == 3
+    np.testing.assert_array_equal(view[1].image, ds.frame("train", 1).image)
+    with pytest.raises(IndexError):
+        view[2]
 
 
 def test_native_single_camera_broadcast_and_resize(tmp_path):

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import warnings
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 
@@ -119,9 +120,11 @@ class Dataset:
                      betas=rec.betas, global_orient=rec.global_orient, body_pose=rec.body_pose,
                      transl=rec.transl, index=rec.index, split=split)
 
-    def frames(self, split: str) -> Iterator[Frame]:
-        for i in range(self.num_frames(split)):
-            yield self.frame(split, i)
+    def frames(self, split: str, n: int | None = None) -> "FrameView":
+        """The split's first ``n`` frames (default all) as a sequence whose frames are decoded when
+        indexed: a pose sweep or fit over a long video need not hold every image at once."""
+        total = self.num_frames(split)
+        return FrameView(self, split, total if n is None else min(n, total))
 
     # --- internals -------------------------------------------------------------------------------
 
@@ -176,3 +179,18 @@ def _split_key(name: str) -> tuple[int, str]:
 
 def warn(msg: str) -> None:
     warnings.warn(msg, UserWarning, stacklevel=3)
+
+
+class FrameView(Sequence):
+    """Frames 0..n-1 of a dataset split, each decoded by ``Dataset.frame`` when indexed."""
+
+    def __init__(self, dataset: Dataset, split: str, n: int):
+        self.dataset, self.split, self.n = dataset, split, n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int) -> Frame:
+        if not 0 <= i < self.n:
+            raise IndexError(f"frame {i} of {self.n}")
+        return self.dataset.frame(self.split, i)

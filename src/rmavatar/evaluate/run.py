@@ -137,9 +137,8 @@ def evaluate_run(
 
         if progress:
             print(f"fitting the poses of {n} frames ({fit.steps} steps, {fit.batch} frames at a time) ...", flush=True)
-        frames = [dataset.frame(split, i) for i in range(n)]
-        poses = fit_poses(run.avatar, run.body, poses, params["betas"][:n] if run.body.num_betas > 0 else None, frames,
-                          background, fit)
+        poses = fit_poses(run.avatar, run.body, poses, params["betas"][:n] if run.body.num_betas > 0 else None,
+                          dataset.frames(split, n), background, fit)
         pose_source += ", then fitted to each test image"
     truth = true_poses(dataset, split)
     errors = None

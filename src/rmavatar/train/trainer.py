@@ -153,20 +153,6 @@ def keep_freed_memory() -> None:
 
 
 # ----------------------------------------------------------------------------------------------- training
-class _LazyFrames:
-    """A split's first n frames, decoded when indexed (a pose sweep over a long video at full size
-    would not fit in memory all at once)."""
-
-    def __init__(self, dataset, split: str, n: int):
-        self.dataset, self.split, self.n = dataset, split, n
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, i: int):
-        return self.dataset.frame(self.split, i)
-
-
 @dataclass
 class TrainResult:
     iteration: int  # the last completed iteration
@@ -570,12 +556,12 @@ class Trainer:
         split, n = self.cfg.data.split, len(self.poses)
         # Any fixed background does: the targets are composited with their masks over the same one.
         bg = background_color("black" if self.cfg.background == "black" else "white", self.bg_generator, self.device)
-        frames = _LazyFrames(self.dataset, split, n)
         if self.progress:
             print(f"pose sweep after iteration {self.iteration}: fitting the {n} training poses "
                   f"({self.cfg.optim.pose_sweep_steps} steps each)", flush=True)
-        fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas, frames, bg,
-                           FitConfig(steps=self.cfg.optim.pose_sweep_steps), progress=self.progress)
+        fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas,
+                           self.dataset.frames(split, n), bg, FitConfig(steps=self.cfg.optim.pose_sweep_steps),
+                           progress=self.progress)
         self.poses.set_poses(fitted)
 
     def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
