@@ -118,7 +118,7 @@ def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_pa
     assert fitted["mean"]["psnr"] > plain["mean"]["psnr"]
 
 
-def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(noisy, tmp_path):
+def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(noisy, tmp_path, monkeypatch):
     """A checkpoint whose config predates optim.smooth_poses and optim.pose_sweeps refined the dataset's
     poses as given and without sweeps: it resumes as smooth_poses 0 (the default 2 would change the poses
     it refines and be refused) and no sweeps (the default would fit every pose at 3/4 of the run)."""
@@ -133,18 +133,14 @@ def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(n
     del payload["config"]["optim"]["smooth_poses"], payload["config"]["optim"]["pose_sweeps"]
     save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
     swept = []
-    original = Trainer.sweep_poses
-    Trainer.sweep_poses = lambda self: (swept.append(self.iteration), original(self))
-    try:
-        done = train(None, tmp_path / "old", resume=True, overrides=[(8, "optim", "iters")], progress=False)
-    finally:
-        Trainer.sweep_poses = original
+    monkeypatch.setattr(Trainer, "sweep_poses", lambda self: swept.append(self.iteration))
+    done = train(None, tmp_path / "old", resume=True, overrides=[(8, "optim", "iters")], progress=False)
     assert done.iteration == 8 and swept == []
     saved = read_checkpoint(path)["config"]["optim"]
     assert saved["smooth_poses"] == 0 and tuple(saved["pose_sweeps"]) == ()
 
 
-def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_path):
+def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_path, monkeypatch):
     """optim.pose_sweeps [0.8] on a 40-step run: one sweep, after iteration 32. Its fitted poses render
     the frames closer to their images than the poses before it (mean |render - target| with the avatar
     of that moment) and are no further from the true poses (10 degrees of noise per axis; a 48 px
@@ -177,11 +173,8 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
         after = self.poses.poses()
         seen.append((self.iteration, before, after, image_error(self, before), image_error(self, after)))
 
-    Trainer.sweep_poses = sweep
-    try:
-        train(cfg, tmp_path / "run", progress=False)
-    finally:
-        Trainer.sweep_poses = original
+    monkeypatch.setattr(Trainer, "sweep_poses", sweep)
+    train(cfg, tmp_path / "run", progress=False)
     assert [s[0] for s in seen] == [32]
     _, before, after, err_before, err_after = seen[0]
     truth = true_poses(load_dataset(noisy, size=SIZE), "train")
