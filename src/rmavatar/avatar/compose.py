@@ -21,9 +21,9 @@ from __future__ import annotations
 import torch
 
 from rmavatar.avatar.geometry import quat_left_matrix, quat_right_matrix
+from rmavatar.render.project import unit_backward, unit_forward
 from rmavatar.utils.device import constant
 
-_EPS = 1e-12  # unit(v) = v / max(|v|, eps), as geometry.unit_rows
 _threshold_backward = torch.ops.aten.threshold_backward  # grad where x > threshold, else 0: one operation
 
 
@@ -61,9 +61,7 @@ class _Compose(torch.autograd.Function):
             # both normalisations at once: [2,N,4] = (quats, 1 + d_r)
             identity = constant(((0.0,) * 4, (1.0, 0.0, 0.0, 0.0)), quats.dtype, quats.device).unsqueeze(1)
             v = torch.stack((quats, d_r)) + identity
-        norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-        clamped = norm.clamp_min(_EPS)
-        u = v / clamped
+        u, norm, clamped = unit_forward(v)
         r_star = torch.bmm(L, u[0].unsqueeze(-1)).squeeze(-1)
         if design is None:
             r, right = r_star, None
@@ -123,9 +121,7 @@ class _Compose(torch.autograd.Function):
             else:
                 g_u1 = torch.bmm(g_r.unsqueeze(-2), quat_left_matrix(r_star)).squeeze(-2)
                 g_u = torch.stack((g_u0, g_u1))
-            # unit(v) = v / max(|v|, eps): (g - u (u . g) [|v| > eps]) / max(|v|, eps)
-            radial = _threshold_backward(torch.matmul(g_u.unsqueeze(-2), u.unsqueeze(-1)).squeeze(-1), norm, _EPS)
-            g_v = torch.addcmul(g_u, u, radial, value=-1.0) / clamped
+            g_v = unit_backward(g_u, u, norm, clamped)
             g_quats = g_v[0]
             g_dr = None if design is None else g_v[1]
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import torch
 
-from rmavatar.render.project import quat_to_rotmat  # part of this module's API
+from rmavatar.render.project import UNIT_EPS, quat_to_rotmat, unit_backward, unit_forward  # quat_to_rotmat: API
 from rmavatar.utils.device import constant
 
 # Below this length a vector is treated as zero: a degenerate triangle then gets a zero scale w
 # (its Gaussians collapse onto its centroid) instead of NaNs.
-_EPS = 1e-12
+_EPS = UNIT_EPS
 
 
 def _normalize(v: torch.Tensor) -> torch.Tensor:
@@ -20,14 +20,12 @@ def _normalize(v: torch.Tensor) -> torch.Tensor:
 
 
 class _UnitRows(torch.autograd.Function):
-    """v / max(|v|, eps) along the last dimension, with the backward written out:
-    (g - u (u . g) [|v| > eps]) / max(|v|, eps), 6 operations where autograd records about 11."""
+    """v / max(|v|, eps) along the last dimension, with the backward written out
+    (:func:`rmavatar.render.project.unit_backward`: 6 operations where autograd records about 11)."""
 
     @staticmethod
     def forward(ctx, v, eps):
-        n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-        nc = n.clamp_min(eps)
-        u = v / nc
+        u, n, nc = unit_forward(v, eps)
         ctx.save_for_backward(u, n, nc)
         ctx.eps = eps
         return u
@@ -36,9 +34,7 @@ class _UnitRows(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):
         u, n, nc = ctx.saved_tensors
-        # below eps the divisor is a constant: only the first term
-        radial = (u * g).sum(-1, keepdim=True) * (n > ctx.eps)
-        return torch.addcmul(g, u, radial, value=-1.0) / nc, None
+        return unit_backward(g, u, n, nc, ctx.eps), None
 
 
 def unit_rows(v: torch.Tensor, eps: float = _EPS) -> torch.Tensor:

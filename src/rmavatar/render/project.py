@@ -201,6 +201,22 @@ def _sh_derivative_table(degree: int) -> tuple:
 
 
 _threshold_backward = torch.ops.aten.threshold_backward  # grad where x > threshold, else 0: one operation
+UNIT_EPS = 1e-12  # unit(v) = v / max(|v|, eps): below this length a row is divided by eps, not by itself
+
+
+def unit_forward(v: Tensor, eps: float = UNIT_EPS) -> tuple[Tensor, Tensor, Tensor]:
+    """unit(v) = v / max(|v|, eps) along the last dimension, for autograd Functions that write their
+    backward out: returns (u, |v|, max(|v|, eps)), the last two [...,1], which :func:`unit_backward` needs."""
+    norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    clamped = norm.clamp_min(eps)
+    return v / clamped, norm, clamped
+
+
+def unit_backward(grad: Tensor, u: Tensor, norm: Tensor, clamped: Tensor, eps: float = UNIT_EPS) -> Tensor:
+    """The gradient through :func:`unit_forward`: (g - u (u . g) [|v| > eps]) / max(|v|, eps) (below eps
+    the divisor is a constant, so only the first term)."""
+    radial = _threshold_backward(torch.linalg.vecdot(u, grad).unsqueeze(-1), norm, eps)
+    return torch.addcmul(grad, u, radial, value=-1.0) / clamped
 
 
 class _ViewColors(torch.autograd.Function):
@@ -216,9 +232,7 @@ class _ViewColors(torch.autograd.Function):
         dtype, device = means.dtype, means.device
         diff = torch.add(means, offset, alpha=alpha)  # the camera -> Gaussian direction, world axes
         d = diff if frames is None else torch.bmm(diff.unsqueeze(-2), frames).squeeze(-2)  # R^T diff
-        norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-        clamped = norm.clamp_min(1e-12)
-        u = d / clamped
+        u, norm, clamped = unit_forward(d)
         m = torch.nn.functional.pad(u, (1, 0), value=1.0)  # [N,4]: 1, x, y, z
         prev, mono = None, m
         for _ in range(degree - 1):
@@ -245,9 +259,7 @@ class _ViewColors(torch.autograd.Function):
             g_u = g_basis @ constant(_sh_derivative_table(degree), u.dtype, u.device)  # [N, 3 * 4^(degree-1)]
             if degree > 1:
                 g_u = torch.bmm(g_u.view(n, 3, -1), prev.unsqueeze(-1)).squeeze(-1)  # [N,3]
-            # u = d / max(|d|, eps): (g - u (u . g) [|d| > eps]) / max(|d|, eps)
-            radial = _threshold_backward(torch.bmm(g_u.unsqueeze(-2), u.unsqueeze(-1)).squeeze(-1), norm, 1e-12)
-            g_d = torch.addcmul(g_u, u, radial, value=-1.0) / clamped
+            g_d = unit_backward(g_u, u, norm, clamped)
             if frames is None:
                 g_diff = g_d
             else:
