@@ -124,6 +124,20 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     assert cfg.optim.pose_sweep_iterations() == {500, 800}
 
 
+def test_a_sweep_on_an_opacity_reset_runs_before_it():
+    """1,000 steps with the paper's schedule reset opacities at 200, 300, ..., 600: a sweep that falls on
+    one of them fits the avatar one step earlier, before it turns nearly transparent; others stay."""
+    from rmavatar.train.density import DensityConfig
+    from rmavatar.train.optim import OptimConfig
+    from rmavatar.train.trainer import sweep_iterations
+
+    optim = OptimConfig(iters=1000, pose_sweeps=(0.3, 0.45, 0.6, 0.75)).validate()
+    schedule = DensityConfig().schedule(1000)
+    assert [s for s in range(1, 1001) if schedule.reset_at(s)] == [200, 300, 400, 500, 600]
+    assert sweep_iterations(optim, schedule) == {299, 450, 599, 750}
+    assert sweep_iterations(optim, None) == {300, 450, 600, 750}
+
+
 def test_pose_lr_schedule_is_frozen_then_decays():
     cfg = OptimConfig(iters=100, pose_warmup=0.2, lr_pose_final_scale=0.1)
     assert cfg.pose_warmup_steps() == 20

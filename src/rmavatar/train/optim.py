@@ -82,7 +82,8 @@ class OptimConfig:
         return round(self.pose_warmup * self.iters)
 
     def pose_sweep_iterations(self) -> set[int]:
-        """The iteration counts after which the training poses are fitted (before the next step)."""
+        """The iteration counts after which the training poses are fitted (before the next step); the
+        trainer moves one that falls on an opacity reset one earlier (``train.trainer.sweep_iterations``)."""
         return {max(1, round(f * self.iters)) for f in self.pose_sweeps}
 
     def pose_lr_scale(self, iteration: int) -> float:
