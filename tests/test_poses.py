@@ -220,7 +220,9 @@ def test_fit_config_refuses_bad_settings():
 
     for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
                        ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"smooth": -1}, "smoothing"),
-                       ({"smooth": 1.5}, "smoothing"), ({"prior": -0.1}, "prior")):
+                       ({"smooth": 1.5}, "smoothing"), ({"prior": -0.1}, "fit.prior"),
+                       ({"lr_rotation": -0.01}, "fit.lr_rotation"), ({"lr_translation": float("nan")}, "finite"),
+                       ({"final_scale": 0.0}, "fit.final_scale"), ({"silhouette": float("inf")}, "finite")):
         with pytest.raises(UserError, match=match):
             FitConfig(**bad).validate()
     assert "4x4 then 2x2 then 1x1" in FitConfig().protocol()["loss"]

@@ -32,6 +32,7 @@ from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
 from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
 from rmavatar.render.rasterize import rasterize
 from rmavatar.utils import UserError
+from rmavatar.utils.config import check_fields
 
 
 @dataclass
@@ -61,18 +62,19 @@ class FitConfig:
     smooth: int = 2
 
     def validate(self) -> "FitConfig":
+        # the settings `rmavatar eval` has flags for, in the flags' words
         if self.steps < 1:
             raise UserError(f"--fit-poses needs at least 1 step, got {self.steps}")
         if self.batch < 1:
-            raise UserError(f"the pose-fitting batch must be >= 1 frame, got {self.batch}")
-        if self.prior < 0:
-            raise UserError(f"the pose fit's prior weight must be >= 0, got {self.prior}")
-        if self.refresh < 1:
-            raise UserError(f"the pose fit's refresh interval must be >= 1 step, got {self.refresh}")
+            raise UserError(f"the pose-fitting batch (--fit-batch) must be >= 1 frame, got {self.batch}")
         if not isinstance(self.smooth, int) or isinstance(self.smooth, bool) or self.smooth < 0:
-            raise UserError(f"the pose fit's smoothing must be a whole number of frames >= 0, got {self.smooth!r}")
+            raise UserError(f"the pose fit's smoothing (--fit-smooth) must be a whole number of frames >= 0, "
+                            f"got {self.smooth!r}")
+        # the rest: finite numbers of their types, and in range
+        check_fields(self, "fit", at_least_one=("refresh",),
+                     nonnegative=("lr_rotation", "lr_translation", "silhouette", "prior"), positive=("final_scale",))
         if not self.scales or any(int(k) != k or k < 1 for k in self.scales):
-            raise UserError(f"the pose fit's scales must be whole numbers >= 1, got {self.scales}")
+            raise UserError(f"fit.scales must be whole numbers >= 1, got {self.scales}")
         return self
 
     def protocol(self) -> dict:
