@@ -44,10 +44,14 @@ class OptimConfig:
     # Pose sweeps: at these fractions of the run every training frame's pose is fitted to its image with
     # the avatar held still (the evaluation's fitting, pose_sweep_steps Adam steps per frame), then
     # training goes on from the fitted poses. Why: a frame's correction otherwise moves only on the ~1 in
-    # n steps that sample it, and until the density control's last opacity reset (0.7 of the run) the
-    # avatar is too unsettled to steer it; 1,000 steps over 100 frames left the corrections nearly where
-    # the smoothing put them. Empty = no sweeps.
-    pose_sweeps: tuple[float, ...] = (0.75,)
+    # n steps that sample it; 1,000 steps over 100 frames left the corrections nearly where the
+    # smoothing put them. Two early sweeps beat one late one (128 px proxy, fitted test frames: [0.75]
+    # 27.50 dB, [0.45, 0.75] 28.22, [0.2, 0.45] 28.39, true poses 28.94; docs/train.md), plausibly
+    # because the avatar then has most of the run, at a position lr not yet decayed, to sharpen on the
+    # fitted poses. A sweep on an opacity reset runs one step earlier (trainer.sweep_iterations). Each
+    # sweep is a fixed cost (every training frame x pose_sweep_steps): large against the demo's 1,000
+    # steps, small against the paper's 50,000. Empty = no sweeps.
+    pose_sweeps: tuple[float, ...] = (0.2, 0.45)
     pose_sweep_steps: int = 30
 
     def validate(self) -> "OptimConfig":
