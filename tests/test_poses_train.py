@@ -78,23 +78,33 @@ def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypat
         train(None, tmp_path / "whole", resume=True, overrides=[(False, "optim", "refine_poses")], progress=False)
 
 
-def test_refinement_reduces_the_pose_error(noisy, tmp_path):
+@pytest.mark.parametrize("sweeps", [(0.75,), None], ids=["one-late-sweep", "default-sweeps"])
+def test_refinement_reduces_the_pose_error(noisy, tmp_path, sweeps):
     """The images show the true poses, the dataset holds them with 10 degrees of noise per axis: the
-    refined training poses are closer to the true ones than the given ones, the global orientation too,
-    and no joint gets more than a degree worse. (Measured: 16.40 -> 12.94 degrees, global 18.10 -> 16.13,
-    with the default pose sweep at 3/4 of the run; 16.35 without sweeps.)"""
+    refined training poses are closer to the true ones than the given ones, the global orientation too.
+    With one sweep at 3/4 of the run no joint gets more than a degree worse (measured: 16.40 -> 12.94
+    degrees, global 18.10 -> 16.13; 16.35 without sweeps). With the default sweeps (0.2 and 0.45) this
+    60-step run sweeps an avatar that has trained for 12 and 27 steps, and one joint does get worse, so
+    only the first two hold (measured: 16.40 -> 13.40 degrees, global 18.10 -> 14.34, the right knee
+    4.37 degrees worse); at the demo's 1,000 steps every joint improved (by 1.68 degrees or more,
+    docs/evaluate.md)."""
     import json
 
     cfg = _cfg(noisy, 60)
     cfg.optim.pose_warmup = 0.25
+    if sweeps is not None:
+        cfg.optim.pose_sweeps = sweeps
     train(cfg, tmp_path / "run", progress=False)
     err = json.loads((tmp_path / "run" / "pose_error.json").read_text())
     given, refined = err["given"], err["refined"]
     print("pose error given / refined:", given["joint_angle_deg"], refined["joint_angle_deg"],
-          "global:", given["per_joint_deg"][0], refined["per_joint_deg"][0], "transl mm:", refined["transl_mm"])
+          "global:", given["per_joint_deg"][0], refined["per_joint_deg"][0], "transl mm:", refined["transl_mm"],
+          "worse:", [(j, round(r - g, 2)) for j, (r, g) in
+                     enumerate(zip(refined["per_joint_deg"], given["per_joint_deg"])) if r > g])
     assert refined["joint_angle_deg"] < given["joint_angle_deg"]
     assert refined["per_joint_deg"][0] < given["per_joint_deg"][0]
-    assert max(r - g for r, g in zip(refined["per_joint_deg"], given["per_joint_deg"])) < 1.0
+    if sweeps is not None:
+        assert max(r - g for r, g in zip(refined["per_joint_deg"], given["per_joint_deg"])) < 1.0
 
 
 def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_path):
