@@ -129,13 +129,12 @@ def test_a_sweep_on_an_opacity_reset_runs_before_it():
     one of them fits the avatar one step earlier, before it turns nearly transparent; others stay."""
     from rmavatar.train.density import DensityConfig
     from rmavatar.train.optim import OptimConfig
-    from rmavatar.train.trainer import sweep_iterations
 
     optim = OptimConfig(iters=1000, pose_sweeps=(0.3, 0.45, 0.6, 0.75)).validate()
     schedule = DensityConfig().schedule(1000)
     assert [s for s in range(1, 1001) if schedule.reset_at(s)] == [200, 300, 400, 500, 600]
-    assert sweep_iterations(optim, schedule) == {299, 450, 599, 750}
-    assert sweep_iterations(optim, None) == {300, 450, 600, 750}
+    assert optim.pose_sweep_iterations(schedule) == {299, 450, 599, 750}
+    assert optim.pose_sweep_iterations() == {300, 450, 600, 750}
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():

@@ -194,18 +194,6 @@ class _Interrupt:
 _BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": ()}}
 
 
-def sweep_iterations(optim, schedule) -> set[int]:
-    """The iterations after which training sweeps its poses (``optim.pose_sweep_iterations()``), each one
-    that falls on an opacity reset of ``schedule`` (a DensitySchedule, or None without density control)
-    moved one earlier. Why: right after a reset every opacity is at most ``density.reset_opacity_to``
-    (0.01) and the avatar is nearly invisible, so fitting the poses to its renders learns little
-    (measured at 128 px, 500 steps, 3 degrees of pose noise: sweeps at 0.3 and 0.6 of the run, both on
-    resets, scored 0.54 dB below the same sweeps one step earlier on fitted test frames, and 2.1 dB
-    below on the avatar's own training frames; docs/train.md)."""
-    on_reset = (lambda s: False) if schedule is None else schedule.reset_at
-    return {s - 1 if s > 1 and on_reset(s) else s for s in optim.pose_sweep_iterations()}
-
-
 def train(
     cfg: TrainConfig | None,
     run_dir: str | Path,
@@ -500,7 +488,7 @@ class Trainer:
         try:
             with _Interrupt() as stop:
                 schedule = self.density.schedule if cfg.density.enabled else None
-                sweeps = sweep_iterations(cfg.optim, schedule) if self.poses is not None else set()
+                sweeps = cfg.optim.pose_sweep_iterations(schedule) if self.poses is not None else set()
                 while self.iteration < total:
                     if self.iteration in sweeps:  # after that iteration's checkpoint: a resume redoes it
                         self.sweep_poses()
