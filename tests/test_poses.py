@@ -117,6 +117,14 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
             OptimConfig(pose_sweeps=bad).validate()
     with pytest.raises(UserError, match="pose_sweep_steps"):
         OptimConfig(pose_sweep_steps=0).validate()
+    for bad in (-0.1, 1.5, True, "half"):
+        with pytest.raises(UserError, match="pose_pass"):
+            OptimConfig(pose_pass=bad).validate()
+    # The pose pass runs only with refinement, round(fraction * iters) long, at least one iteration.
+    assert OptimConfig(iters=1000).pose_pass_iters(True) == 500
+    assert OptimConfig(iters=1000).pose_pass_iters(False) == 0
+    assert OptimConfig(iters=1000, pose_pass=0.0).pose_pass_iters(True) == 0
+    assert OptimConfig(iters=3, pose_pass=0.1).pose_pass_iters(True) == 1
     (tmp_path / "sweeps.yaml").write_text("optim:\n  pose_sweeps: [0.5, 0.8]\n")
     cfg = load_config(tmp_path / "sweeps.yaml").validate()
     assert cfg.optim.pose_sweeps == (0.5, 0.8)

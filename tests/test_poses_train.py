@@ -35,6 +35,7 @@ def _cfg(data, iters):
     cfg.optim.iters = iters
     cfg.optim.refine_poses = True
     cfg.optim.pose_warmup = 0.0  # refine from the first step, so a short run exercises it
+    cfg.optim.pose_pass = 0.0  # one pass: these tests are of the run that refines (two passes: below)
     cfg.threads = 1
     cfg.log.tensorboard = False
     cfg.log.preview_every = 10**6
@@ -129,9 +130,10 @@ def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_pa
 
 
 def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(noisy, tmp_path, monkeypatch):
-    """A checkpoint whose config predates optim.smooth_poses and optim.pose_sweeps refined the dataset's
-    poses as given and without sweeps: it resumes as smooth_poses 0 (the default 2 would change the poses
-    it refines and be refused) and no sweeps (the default would fit every pose at 3/4 of the run)."""
+    """A checkpoint whose config predates optim.smooth_poses, optim.pose_sweeps and optim.pose_pass
+    refined the dataset's poses as given, without sweeps, in one pass: it resumes as smooth_poses 0 (the
+    default 2 would change the poses it refines and be refused), no sweeps and one pass (the default
+    would hold its poses still)."""
     from rmavatar.train.checkpoint import save_checkpoint
 
     cfg = _cfg(noisy, 4)
@@ -140,14 +142,16 @@ def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(n
     train(cfg, tmp_path / "old", progress=False)
     path = checkpoint_path(tmp_path / "old")
     payload = read_checkpoint(path)
-    del payload["config"]["optim"]["smooth_poses"], payload["config"]["optim"]["pose_sweeps"]
+    for key in ("smooth_poses", "pose_sweeps", "pose_pass"):
+        del payload["config"]["optim"][key]
     save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
     swept = []
     monkeypatch.setattr(Trainer, "sweep_poses", lambda self: swept.append(self.iteration))
     done = train(None, tmp_path / "old", resume=True, overrides=[(8, "optim", "iters")], progress=False)
     assert done.iteration == 8 and swept == []
     saved = read_checkpoint(path)["config"]["optim"]
-    assert saved["smooth_poses"] == 0 and tuple(saved["pose_sweeps"]) == ()
+    assert saved["smooth_poses"] == 0 and tuple(saved["pose_sweeps"]) == () and saved["pose_pass"] == 0
+    assert not (tmp_path / "old" / "pose_pass").exists()
 
 
 def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_path, monkeypatch):
@@ -192,3 +196,81 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
     print("sweep: image error", err_before, "->", err_after, "; pose error", angle_before, "->", angle_after)
     assert err_after < 0.95 * err_before  # measured 0.0660 -> 0.0610
     assert angle_after < angle_before
+
+
+def _two_pass_cfg(data):
+    cfg = _cfg(data, 8)
+    cfg.optim.pose_pass = 0.5
+    cfg.optim.pose_sweeps = (0.5,)
+    cfg.optim.pose_sweep_steps = 3
+    return cfg
+
+
+def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_path, monkeypatch):
+    """optim.pose_pass 0.5 of 8 iterations: RUN/pose_pass is a refining run of 4; then RUN's avatar
+    starts from the same initial state as that pass's (not from its trained avatar) and trains 8
+    iterations on the first pass's poses, held still (the cached bodies are those poses; the refined
+    poses RUN reports are them)."""
+    started = []
+    original = Trainer.setup
+
+    def setup(self):
+        original(self)
+        started.append((self.run_dir.name, self.avatar.means.detach().clone(), self.vertices.clone(),
+                        None if self.poses is None else self.poses.frozen))
+
+    monkeypatch.setattr(Trainer, "setup", setup)
+    run = tmp_path / "run"
+    done = train(_two_pass_cfg(noisy), run, progress=False)
+    assert done.iteration == 8 and [s[0] for s in started] == ["pose_pass", "run"]
+    assert [s[3] for s in started] == [False, True]  # the first pass refines, the second holds
+    first, second = read_checkpoint(checkpoint_path(run / "pose_pass")), read_checkpoint(checkpoint_path(run))
+    assert first["iteration"] == 4 and second["iteration"] == 8
+    assert torch.equal(started[0][1], started[1][1])  # afresh: the same initial Gaussians
+    assert not torch.equal(first["avatar"]["state_dict"]["means"], started[1][1])
+    p1, p2 = np.load(run / "pose_pass" / "poses.npz"), np.load(run / "poses.npz")
+    for key in ("global_orient", "body_pose", "transl"):
+        np.testing.assert_allclose(p2[key], p1[key], atol=1e-5, err_msg=key)
+    assert np.array_equal(p1["index"], p2["index"])
+    trained = load_trained(run)
+    np.testing.assert_allclose(trained.training_poses.body_pose.numpy(), p1["body_pose"], atol=1e-5)
+    held = trained.vertices(trained.training_poses)
+    torch.testing.assert_close(started[1][2], held, atol=1e-5, rtol=0)
+    assert (started[1][2] - started[0][2]).abs().max() > 1e-3  # not the bodies the first pass started on
+    err1, err2 = (json.loads((d / "pose_error.json").read_text()) for d in (run / "pose_pass", run))
+    assert err2["given"] == err1["given"]
+    assert abs(err2["refined"]["joint_angle_deg"] - err1["refined"]["joint_angle_deg"]) < 1e-3
+
+
+@pytest.mark.parametrize("where", ["pose_pass", "run"], ids=["in-the-first-pass", "in-the-second-pass"])
+def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_path, monkeypatch, where):
+    whole = tmp_path / "whole"
+    train(_two_pass_cfg(noisy), whole, progress=False)
+    original = Trainer.step
+
+    def step(self):
+        out = original(self)
+        if self.run_dir.name == where and self.iteration + 1 == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    run = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "step", step)
+        stopped = train(_two_pass_cfg(noisy), run, progress=False)
+    assert stopped.interrupted and stopped.iteration == 2
+    assert checkpoint_path(run).is_file() == (where == "run")
+    from rmavatar.utils import UserError
+
+    other = _two_pass_cfg(noisy)
+    other.optim.pose_sweep_steps = 4
+    if where == "pose_pass":  # a fresh start over it with other settings would mix two runs: refused
+        with pytest.raises(UserError, match="other settings"):
+            train(other, run, progress=False)
+    train(None, run, resume=True, progress=False)
+    for sub in ("pose_pass", ""):
+        a, b = read_checkpoint(checkpoint_path(whole / sub)), read_checkpoint(checkpoint_path(run / sub))
+        assert a["iteration"] == b["iteration"]
+        for key, value in a["avatar"]["state_dict"].items():
+            assert torch.equal(value, b["avatar"]["state_dict"][key]), (sub, key)
+        assert torch.equal(a["poses"]["delta"], b["poses"]["delta"]), sub

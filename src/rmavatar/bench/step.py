@@ -158,8 +158,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     cfg.data.size = size
     cfg.device = device
     cfg.model.rectifier = rectifier
-    if refine_poses:  # every timed step past the warm-up: the body posed with gradients
-        cfg.optim.refine_poses, cfg.optim.pose_warmup = True, 0.0
+    if refine_poses:  # every timed step past the warm-up: the body posed with gradients (a first pass's)
+        cfg.optim.refine_poses, cfg.optim.pose_warmup, cfg.optim.pose_pass = True, 0.0, 0.0
     if gaussians:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
     cfg.log.tensorboard = False

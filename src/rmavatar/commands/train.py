@@ -17,8 +17,8 @@ EPILOG = """examples:
 Every run folder gets config.yaml (edit it and pass it back with --config), checkpoints/last.pt
 (written every log.checkpoint_every iterations, at the end and on Ctrl-C), previews/*.png (render |
 target) and tb/ (TensorBoard: tensorboard --logdir RUN/tb); runs that refine their poses also get
-poses.npz, and subjects from rmavatar synth pose_error.json. Command-line options override the config
-file."""
+poses.npz and pose_pass/ (the first pass, a run of its own), and subjects from rmavatar synth
+pose_error.json. Command-line options override the config file."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,9 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-offset-loss", action="store_true", help="ablation: offset regulariser weight 0")
     parser.add_argument("--no-scaling-loss", action="store_true", help="ablation: scaling regulariser weight 0")
     parser.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
-                        help="learn per-frame corrections of the training poses, smoothed over +-2 frames "
-                             "first and fitted to every training image at 3/4 of the run (optim.smooth_poses, "
-                             "optim.pose_sweeps; docs/train.md). Default: on when the dataset's poses are "
+                        help="learn per-frame corrections of the training poses: smoothed over +-2 frames, "
+                             "then refined by a first pass of half the iterations (RUN/pose_pass) that fits "
+                             "them to every training image at 20%% and 45%% of it, then the avatar is trained "
+                             "afresh on them for the full iterations (optim.smooth_poses, optim.pose_sweeps, "
+                             "optim.pose_pass; docs/train.md). Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")

@@ -53,6 +53,12 @@ class OptimConfig:
     # steps, small against the paper's 50,000. Empty = no sweeps.
     pose_sweeps: tuple[float, ...] = (0.2, 0.45)
     pose_sweep_steps: int = 30
+    # Two passes: with refinement, a first run of this fraction of iters (with the sweeps above) refines
+    # the poses into RUN/pose_pass, then the avatar is trained afresh on those poses, held, for iters.
+    # Why: an avatar that trained on poses still wrong for part of its run stays blurred after they are
+    # fixed; one trained from the start on the refined poses is sharper (docs/train.md). 0 = one pass:
+    # the avatar that refined the poses is the result.
+    pose_pass: float = 0.5
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
@@ -75,11 +81,20 @@ class OptimConfig:
         self.pose_sweeps = tuple(float(f) for f in self.pose_sweeps)
         if self.pose_sweep_steps < 1:
             raise UserError(f"optim.pose_sweep_steps must be >= 1, got {self.pose_sweep_steps}")
+        f = self.pose_pass
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1:
+            raise UserError(f"optim.pose_pass must be a fraction of iters in [0, 1], got {self.pose_pass!r}")
         return self
 
     def refines_poses(self, poses_estimated: bool) -> bool:
         """Whether this run refines its training poses, for a dataset whose poses are (not) estimated."""
         return bool(poses_estimated) if self.refine_poses is None else self.refine_poses
+
+    def pose_pass_iters(self, poses_estimated: bool) -> int:
+        """Iterations of the pose pass that comes before this run (``pose_pass``); 0 = none."""
+        if not self.refines_poses(poses_estimated) or self.pose_pass == 0:
+            return 0
+        return max(1, round(self.pose_pass * self.iters))
 
     def pose_warmup_steps(self) -> int:
         """Steps with frozen pose corrections; refinement starts at step ``pose_warmup_steps() + 1``."""

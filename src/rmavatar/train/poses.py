@@ -14,6 +14,8 @@ warm-up, then a log-linear decay) are in :class:`rmavatar.train.optim.OptimConfi
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -25,10 +27,13 @@ from rmavatar.utils import UserError, atomic_path
 
 class PoseRefiner:
     """Corrections ``delta`` [n,75] of ``base`` (the dataset's poses of the n training frames) with
-    per-frame Adam state; ``betas`` [n,nb] or None is each frame's body shape."""
+    per-frame Adam state; ``betas`` [n,nb] or None is each frame's body shape. ``frozen``: the
+    corrections are held as set (:meth:`set_poses`; the second pass of ``optim.pose_pass``)."""
 
-    def __init__(self, base: PoseSequence, betas: torch.Tensor | None, cfg: OptimConfig, device: torch.device):
+    def __init__(self, base: PoseSequence, betas: torch.Tensor | None, cfg: OptimConfig, device: torch.device,
+                 frozen: bool = False):
         self.cfg = cfg
+        self.frozen = frozen
         self.base = base.to(device)
         self.betas = None if betas is None else torch.as_tensor(betas, dtype=torch.float32).to(device)
         n = len(base)
@@ -45,7 +50,7 @@ class PoseRefiner:
 
     def active(self, iteration: int) -> bool:
         """Whether step ``iteration`` (1-based) trains the corrections (after the frozen warm-up)."""
-        return iteration > self.cfg.pose_warmup_steps()
+        return not self.frozen and iteration > self.cfg.pose_warmup_steps()
 
     def posed(self, body, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Frame ``i``'s corrected body: vertices [V,3] (differentiable in ``delta``) and body_pose [69]
@@ -128,3 +133,13 @@ def write_poses(path, poses: PoseSequence, index: np.ndarray, split: str) -> Non
         with open(tmp, "wb") as fh:
             np.savez(fh, global_orient=poses.global_orient.numpy(), body_pose=poses.body_pose.numpy(),
                      transl=poses.transl.numpy(), index=np.asarray(index, np.int64), split=np.array(split))
+
+
+def read_poses(path: Path, index: np.ndarray, split: str) -> PoseSequence:
+    """The poses of :func:`write_poses` at ``path``, checked to be of the frames ``index`` of ``split``."""
+    if not path.is_file():
+        raise UserError(f"{path} is missing: the poses this run trains on (start a new run)")
+    with np.load(path) as f:
+        if str(f["split"]) != split or not np.array_equal(f["index"], index):
+            raise UserError(f"{path} holds the poses of other frames than this run's {len(index)} {split!r} frames")
+        return PoseSequence.from_arrays(f["global_orient"], f["body_pose"], f["transl"])

@@ -14,6 +14,7 @@ a step past its warm-up poses its frame's corrected body instead, through :meth:
 
 from __future__ import annotations
 
+import json
 import math
 import random
 import signal
@@ -43,8 +44,9 @@ from rmavatar.train.checkpoint import (
     restore_rng,
     save_checkpoint,
 )
-from rmavatar.train.config import TrainConfig, from_dict, save_config, to_dict
+from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
 from rmavatar.train.losses import lpips_units, total_loss
+from rmavatar.train.poses import PoseRefiner, read_poses, write_poses
 from rmavatar.data.checks import check_files
 from rmavatar.utils import UserError, atomic_path, check_writable_folder, resolve_device
 from rmavatar.utils.device import constant
@@ -191,7 +193,10 @@ class _Interrupt:
 
 
 # A resumed run whose config lacks a setting was trained without it: these values keep it that way.
-_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": ()}}
+_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0}}
+
+# The first pass of a two-pass run (optim.pose_pass) is a run of its own in this folder of RUN.
+POSE_PASS = "pose_pass"
 
 
 def train(
@@ -214,7 +219,14 @@ def train(
     """
     run_dir = Path(run_dir)
     check_writable_folder(run_dir / "config.yaml", f"--out {run_dir}", create=True)
-    if resume:
+    in_pose_pass = (resume and not checkpoint_path(run_dir).is_file()
+                    and checkpoint_path(run_dir / POSE_PASS).is_file())
+    if in_pose_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
+        _resume_payload(run_dir / POSE_PASS, data)
+        ckpt, cfg = None, load_config(run_dir / "config.yaml")
+        _apply_resume_overrides(cfg, overrides or [])
+        cfg.validate()
+    elif resume:
         ckpt = _resume_payload(run_dir, data)
         saved = ckpt["config"]
         # Settings newer than the run take the values that reproduce how it was trained.
@@ -237,10 +249,53 @@ def train(
         cfg.data.path = normalize_data_spec(cfg.data.path)
     # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
     # broken frame leaves nothing behind and is not found hours in.
-    check_files(load_dataset(cfg.data.path, size=cfg.data.size), [cfg.data.split], progress=progress)
-    prepare_run_dir(run_dir, cfg.data.path, resume)
+    dataset = load_dataset(cfg.data.path, size=cfg.data.size)
+    check_files(dataset, [cfg.data.split], progress=progress)
+    first, done = _first_pass(cfg, run_dir, dataset.poses_estimated) if ckpt is None else (None, 0)
+    prepare_run_dir(run_dir, cfg.data.path, resume and not in_pose_pass)
     save_config(cfg, run_dir / "config.yaml")
+    if first is not None and done < first.optim.iters:
+        where = run_dir / POSE_PASS
+        if progress:
+            print(f"pose pass: {first.optim.iters} iterations refine the training poses ({where}), then the "
+                  f"avatar is trained afresh on them for {cfg.optim.iters}", flush=True)
+        if done:
+            keep = [o for o in overrides or [] if (o[1], o[2]) != ("optim", "iters")]  # its length is its own
+            result = train(None, where, resume=True, overrides=keep, progress=progress, on_iteration=on_iteration)
+        else:
+            result = train(first, where, progress=progress, on_iteration=on_iteration)
+        if result.interrupted:
+            return result
     return Trainer(cfg, run_dir, ckpt, progress, on_iteration).run()
+
+
+def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple[TrainConfig | None, int]:
+    """The config of the first pass of a two-pass run (``optim.pose_pass``; None: one pass) and the
+    iterations it has done: a run of its own in RUN/pose_pass that refines the training poses (with the
+    sweeps); the second pass trains the avatar afresh on the poses it leaves in RUN/pose_pass/poses.npz.
+    A first pass already there (stopped, or done) must have been trained with the same settings; its
+    length is its own."""
+    iters = cfg.optim.pose_pass_iters(poses_estimated)
+    if not iters:
+        return None, 0
+    first = from_dict(TrainConfig, to_dict(cfg))
+    first.optim.iters, first.optim.pose_pass = iters, 0.0
+    where = checkpoint_path(run_dir / POSE_PASS)
+    if not where.is_file():
+        return first, 0
+    payload = read_checkpoint(where)
+    saved = payload["config"]
+
+    def settings(config: dict) -> dict:  # all that decides its poses
+        config = json.loads(json.dumps(config))
+        config["optim"].pop("iters")
+        return {k: v for k, v in config.items() if k not in ("threads", "device", "log")}
+
+    if settings(to_dict(first)) != settings(saved):
+        raise UserError(f"{run_dir / POSE_PASS} holds a first pass trained with other settings than this "
+                        "run's; choose another folder")
+    first.optim.iters = int(saved["optim"]["iters"])
+    return first, int(payload["iteration"])
 
 
 def _resume_payload(run_dir: Path, data: str | None) -> dict:
@@ -320,8 +375,6 @@ class Trainer:
         poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
         if cfg.optim.refines_poses(self.dataset.poses_estimated):  # refinement starts from the smoothed poses
             poses = smooth_poses(poses, params["index"], cfg.optim.smooth_poses)
-        self.vertices = posed_vertices(self.body, poses, params["betas"]).to(dev)  # [n,V,3], fixed for the run
-        self.body_pose = poses.body_pose.to(dev)  # [n,69]
         cams = [self.dataset.camera(split, i) for i in range(n)]
         self.viewmats = torch.as_tensor(np.stack([c.viewmat for c in cams]), dtype=torch.float32, device=dev)
         self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32, device=dev)
@@ -352,6 +405,11 @@ class Trainer:
             self._resume_poses(self.ckpt["poses"])
             self.iteration = int(self.ckpt["iteration"])
             print(f"resuming {self.run_dir} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
+        elif self.poses is not None and self.poses.frozen:  # the second pass starts from the first's poses
+            self.poses.set_poses(read_poses(self.run_dir / POSE_PASS / "poses.npz", params["index"], split))
+        trained_on = poses if self.poses is None or not self.poses.frozen else self.poses.poses()
+        self.vertices = posed_vertices(self.body, trained_on, params["betas"]).to(dev)  # [n,V,3], fixed for the run
+        self.body_pose = trained_on.body_pose.to(dev)  # [n,69]
         self.ckpt = None  # free the loaded tensors
         self._cache_frames(FRAME_CACHE_BYTES)
         # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
@@ -488,7 +546,8 @@ class Trainer:
         try:
             with _Interrupt() as stop:
                 schedule = self.density.schedule if cfg.density.enabled else None
-                sweeps = cfg.optim.pose_sweep_iterations(schedule) if self.poses is not None else set()
+                refining = self.poses is not None and not self.poses.frozen
+                sweeps = cfg.optim.pose_sweep_iterations(schedule) if refining else set()
                 while self.iteration < total:
                     if self.iteration in sweeps:  # after that iteration's checkpoint: a resume redoes it
                         self.sweep_poses()
@@ -526,15 +585,16 @@ class Trainer:
     # --- pose refinement --------------------------------------------------------------------------
     def _setup_poses(self, params: dict, poses: PoseSequence) -> None:
         """``poses``: a PoseRefiner of the training frames, or None without pose refinement (auto: on for
-        datasets with estimated poses); ``true_poses``: the noise-free poses of a synthetic subject."""
+        datasets with estimated poses); frozen in the second pass of a two-pass run (``optim.pose_pass``),
+        which holds the first pass's poses; ``true_poses``: the noise-free poses of a synthetic subject."""
         from rmavatar.data.synth import true_poses
-        from rmavatar.train.poses import PoseRefiner
 
         self.pose_index = params["index"]
         self.poses = None
         if self.cfg.optim.refines_poses(self.dataset.poses_estimated):
             betas = params["betas"] if self.body.num_betas > 0 else None
-            self.poses = PoseRefiner(poses, betas, self.cfg.optim, self.device)
+            frozen = self.cfg.optim.pose_pass_iters(self.dataset.poses_estimated) > 0  # the second pass
+            self.poses = PoseRefiner(poses, betas, self.cfg.optim, self.device, frozen=frozen)
         self.true_poses = true_poses(self.dataset, self.cfg.data.split)
         self.pose_error = None
 
@@ -576,10 +636,7 @@ class Trainer:
     def _write_pose_files(self) -> None:
         """RUN/poses.npz (the refined training poses) and, for a subject with true poses,
         RUN/pose_error.json (the given and the refined poses' errors); both atomic."""
-        import json
-
         from rmavatar.body import pose_error
-        from rmavatar.train.poses import write_poses
 
         refined = None if self.poses is None else self.poses.poses()
         if refined is not None:
