@@ -25,7 +25,7 @@ demo: setup
 
 test: setup
 	sh scripts/install-browser.sh  # Chromium for the viewer's browser test (Debian package)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=20 tests  # the 20 slowest listed: a CI that grew shows where
 
 bench: setup
 	$(VENV)/bin/rmavatar bench raster --json bench_raster.json

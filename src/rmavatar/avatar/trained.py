@@ -6,6 +6,7 @@ A run folder holds::
     RUN/config.yaml              the full training config (accepted back with --config)
     RUN/checkpoints/last.pt      the latest checkpoint (torch.save of plain containers and tensors)
     RUN/poses.npz                the refined training poses (runs with pose refinement)
+    RUN/pose_pass/               the first pass of a run that refines its poses (a run folder itself)
     RUN/pose_error.json          the training poses' error vs the true ones (synthetic subjects)
     RUN/previews/*.png           render | target previews
     RUN/tb/                      TensorBoard event files
