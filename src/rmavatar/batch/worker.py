@@ -201,14 +201,11 @@ class _JobRun:
 
     def _check_same_run(self, saved: dict, cfg) -> None:
         """A checkpoint of another config (the job was edited) is not resumed: say which keys differ."""
-        from rmavatar.train.config import flatten, to_dict
+        from rmavatar.train.config import config_differences
 
-        ignore = ("optim.iters", "threads", "device", "data.path")
-        a, b = flatten(saved), flatten(to_dict(cfg))
-        differ = sorted(k for k in set(a) | set(b)
-                        if not k.startswith("log.") and k not in ignore and a.get(k) != b.get(k))
+        differ = config_differences(saved, cfg, ignore=("data.path",))
         if differ:
-            shown = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in differ[:6])
+            shown = ", ".join(differ[:6])
             raise UserError(f"{self.run_dir} holds a run trained with another config ({shown}); "
                             "give the job a new name, or remove that folder to train it again")
 

@@ -102,6 +102,16 @@ def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
     write_yaml(cfg, path)
 
 
+def config_differences(saved: dict, cfg: TrainConfig, ignore: tuple[str, ...] = ()) -> list[str]:
+    """The settings in which a run's saved config (a checkpoint's ``config``) differs from ``cfg``, as
+    "key: saved -> now", leaving out what may change between the parts of one run (its length,
+    threads, device, logging) and the dotted keys ``ignore``."""
+    a, b = flatten(saved), flatten(to_dict(cfg))
+    skip = ("optim.iters", "threads", "device", *ignore)
+    keys = sorted(k for k in set(a) | set(b) if not k.startswith("log.") and k not in skip and a.get(k) != b.get(k))
+    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in keys]
+
+
 # The paper's ablations (§4.4) and our variants as dotted overrides, each one switch away from the paper's
 # full model (its rectifier design, "paper"; our default is "local").
 ABLATIONS: dict[str, dict[str, Any]] = {

@@ -44,7 +44,7 @@ from rmavatar.train.checkpoint import (
     restore_rng,
     save_checkpoint,
 )
-from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
+from rmavatar.train.config import TrainConfig, config_differences, from_dict, load_config, save_config, to_dict
 from rmavatar.train.losses import lpips_units, total_loss
 from rmavatar.train.poses import PoseRefiner, read_poses, write_poses
 from rmavatar.data.checks import check_files
@@ -222,8 +222,9 @@ def train(
     in_pose_pass = (resume and not checkpoint_path(run_dir).is_file()
                     and checkpoint_path(run_dir / POSE_PASS).is_file())
     if in_pose_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
-        _resume_payload(run_dir / POSE_PASS, data)
         ckpt, cfg = None, load_config(run_dir / "config.yaml")
+        if data is not None and normalize_data_spec(data) != cfg.data.path:
+            raise UserError(f"--resume: {run_dir} is a run of {cfg.data.path!r}, not of {normalize_data_spec(data)!r}")
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
     elif resume:
@@ -285,15 +286,10 @@ def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple
         return first, 0
     payload = read_checkpoint(where)
     saved = payload["config"]
-
-    def settings(config: dict) -> dict:  # all that decides its poses
-        config = json.loads(json.dumps(config))
-        config["optim"].pop("iters")
-        return {k: v for k, v in config.items() if k not in ("threads", "device", "log")}
-
-    if settings(to_dict(first)) != settings(saved):
+    differ = config_differences(saved, first)
+    if differ:
         raise UserError(f"{run_dir / POSE_PASS} holds a first pass trained with other settings than this "
-                        "run's; choose another folder")
+                        f"run's ({', '.join(differ[:6])}); choose another folder")
     first.optim.iters = int(saved["optim"]["iters"])
     return first, int(payload["iteration"])
 
