@@ -23,6 +23,7 @@ from rmavatar.bench.quality import variant_config
 from rmavatar.evaluate.fit import FitConfig
 from rmavatar.evaluate.run import evaluate_run
 from rmavatar.train import train
+from rmavatar.utils.config import apply_overrides
 
 
 def main(argv: list[str]) -> None:
@@ -32,10 +33,7 @@ def main(argv: list[str]) -> None:
     run = work / "run"
     cfg = variant_config("local_rectifier", noisy, 256, 1000, 0, 40_000, 0, "cpu")
     cfg.optim.refine_poses = True
-    for setting in argv[2:]:
-        key, value = setting.split("=", 1)
-        section, field = key.split(".")
-        setattr(getattr(cfg, section), field, ast.literal_eval(value))
+    cfg = apply_overrides(cfg, {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in argv[2:])}, "settings")
     out: dict = {"settings": argv[2:], "data": noisy}
 
     def save() -> None:

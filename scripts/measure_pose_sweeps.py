@@ -24,6 +24,7 @@ from rmavatar.bench.quality import variant_config
 from rmavatar.evaluate.fit import FitConfig
 from rmavatar.evaluate.run import evaluate_run
 from rmavatar.train import train
+from rmavatar.utils.config import apply_overrides
 
 
 def main(argv: list[str]) -> None:
@@ -36,10 +37,7 @@ def main(argv: list[str]) -> None:
         data, rest = rest[0], rest[1:]
     run = work / name / "run"
     cfg = variant_config("local_rectifier", data, 128, 500, 0, 20_000, 0, "cpu")
-    for setting in rest:
-        key, value = setting.split("=", 1)
-        section, field = key.split(".")
-        setattr(getattr(cfg, section), field, ast.literal_eval(value))
+    cfg = apply_overrides(cfg, {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in rest)}, "settings")
     started = time.perf_counter()
     train(cfg, run, progress=False)
     out = {"settings": rest, "data": data, "train_seconds": time.perf_counter() - started}
