@@ -274,3 +274,26 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
         for key, value in a["avatar"]["state_dict"].items():
             assert torch.equal(value, b["avatar"]["state_dict"][key]), (sub, key)
         assert torch.equal(a["poses"]["delta"], b["poses"]["delta"]), sub
+
+
+def test_the_poses_file_round_trips_and_refuses_other_frames(tmp_path):
+    """RUN/poses.npz (train.poses.write_poses/read_poses): read back as written; missing, or of other
+    frames or another split, a clear error naming the file."""
+    from rmavatar.body import PoseSequence
+    from rmavatar.train.poses import read_poses, write_poses
+    from rmavatar.utils import UserError
+
+    g = torch.Generator().manual_seed(0)
+    poses = PoseSequence(*(torch.randn(3, k, generator=g) for k in (3, 69, 3)))
+    index = np.array([4, 7, 9])
+    path = tmp_path / "poses.npz"
+    with pytest.raises(UserError, match="poses.npz is missing"):
+        read_poses(path, index, "train")
+    write_poses(path, poses, index, "train")
+    back = read_poses(path, index, "train")
+    for key in ("global_orient", "body_pose", "transl"):
+        assert torch.equal(getattr(back, key), getattr(poses, key)), key
+    for other, split in (([4, 7, 8], "train"), ([4, 7], "train"), (index, "test")):
+        with pytest.raises(UserError, match=r"poses.npz holds the poses of other frames"):
+            read_poses(path, np.array(other), split)
+    assert [p.name for p in tmp_path.iterdir()] == ["poses.npz"]  # written atomically: no temporary left
