@@ -15,10 +15,6 @@ from rmavatar.utils.device import constant
 _EPS = UNIT_EPS
 
 
-def _normalize(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(_EPS)
-
-
 class _UnitRows(torch.autograd.Function):
     """v / max(|v|, eps) along the last dimension, with the backward written out
     (:func:`rmavatar.render.project.unit_backward`: 6 operations where autograd records about 11)."""
@@ -64,7 +60,7 @@ def triangle_frames(
     e1, e2 = (tri[..., 1:, :] - tri[..., :1, :]).unbind(-2)  # both edges from v0 in one operation
     n1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
     a0 = e1 / n1.clamp_min(_EPS)
-    a1 = _normalize(torch.linalg.cross(a0, e2, dim=-1))
+    a1 = unit_rows(torch.linalg.cross(a0, e2, dim=-1))
     a2 = torch.linalg.cross(a0, a1, dim=-1)
     R = torch.stack((a0, a1, a2), dim=-1)
     w = 0.5 * (n1.squeeze(-1) + (a2 * e2).sum(-1).abs())
