@@ -223,8 +223,7 @@ def train(
                     and checkpoint_path(run_dir / POSE_PASS).is_file())
     if in_pose_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
         ckpt, cfg = None, load_config(run_dir / "config.yaml")
-        if data is not None and normalize_data_spec(data) != cfg.data.path:
-            raise UserError(f"--resume: {run_dir} is a run of {cfg.data.path!r}, not of {normalize_data_spec(data)!r}")
+        _check_resume_data(run_dir, data, cfg.data.path)
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
     elif resume:
@@ -299,9 +298,14 @@ def _resume_payload(run_dir: Path, data: str | None) -> dict:
     if not path.is_file():
         raise UserError(f"--resume: {run_dir} has no checkpoint ({path} missing)")
     payload = read_checkpoint(path)
-    if data is not None and normalize_data_spec(data) != payload["data_spec"]:
-        raise UserError(f"--resume: {run_dir} is a run of {payload['data_spec']!r}, not of {normalize_data_spec(data)!r}")
+    _check_resume_data(run_dir, data, payload["data_spec"])
     return payload
+
+
+def _check_resume_data(run_dir: Path, data: str | None, trained_on: str) -> None:
+    """``--data`` given with ``--resume`` must name the dataset the run was trained on."""
+    if data is not None and normalize_data_spec(data) != trained_on:
+        raise UserError(f"--resume: {run_dir} is a run of {trained_on!r}, not of {normalize_data_spec(data)!r}")
 
 
 # Per-frame constants kept on the device for the whole run, while all of them together fit in this many
