@@ -115,6 +115,12 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     for bad in (0.75, [0.0], [1.0], ["x"], [True]):
         with pytest.raises(UserError, match="pose_sweeps"):
             OptimConfig(pose_sweeps=bad).validate()
+    for bad in (0.75, [0.0], [1.0], ["x"], [True]):
+        with pytest.raises(UserError, match="pose_refits"):
+            OptimConfig(pose_refits=bad).validate()
+    for bad in (0.0, -1e-3, float("nan"), True):
+        with pytest.raises(UserError, match="pose_refit_lr"):
+            OptimConfig(pose_refit_lr=bad).validate()
     with pytest.raises(UserError, match="pose_sweep_steps"):
         OptimConfig(pose_sweep_steps=0).validate()
     for bad in (-0.1, 1.5, True, "half"):
@@ -143,6 +149,8 @@ def test_a_sweep_on_an_opacity_reset_runs_before_it():
     assert [s for s in range(1, 1001) if schedule.reset_at(s)] == [200, 300, 400, 500, 600]
     assert optim.pose_sweep_iterations(schedule) == {299, 450, 599, 750}
     assert optim.pose_sweep_iterations() == {300, 450, 600, 750}
+    refits = OptimConfig(iters=1000, pose_refits=(0.5, 0.8)).validate().pose_refits
+    assert optim.pose_sweep_iterations(schedule, refits) == {499, 800}  # the second pass's refits, the same rule
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():

@@ -159,10 +159,9 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
     the frames closer to their images than the poses before it (mean |render - target| with the avatar
     of that moment) and are no further from the true poses (10 degrees of noise per axis; a 48 px
     avatar this young says little more about them)."""
-    from rmavatar.body import pose_error, posed_vertices
+    from rmavatar.body import pose_error
     from rmavatar.data import load_dataset
     from rmavatar.data.synth import true_poses
-    from rmavatar.render.gaussians import render_gaussians
 
     cfg = _cfg(noisy, 40)
     cfg.optim.pose_sweeps = (0.8,)
@@ -170,22 +169,11 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
     seen = []
     original = Trainer.sweep_poses
 
-    @torch.no_grad()
-    def image_error(self, poses):
-        bg = torch.ones(3)
-        verts = posed_vertices(self.body, poses, self.poses.betas)
-        errs = []
-        for i in range(len(poses)):
-            gs = self.avatar(verts[i], poses.body_pose[i])
-            image = render_gaussians(gs, self.viewmats[i], self.Ks[i], self.width, self.height, background=bg)[0]
-            errs.append((image - self.target(i, bg)).abs().mean())
-        return float(torch.stack(errs).mean())
-
     def sweep(self):
         before = self.poses.poses()
         original(self)
         after = self.poses.poses()
-        seen.append((self.iteration, before, after, image_error(self, before), image_error(self, after)))
+        seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
 
     monkeypatch.setattr(Trainer, "sweep_poses", sweep)
     train(cfg, tmp_path / "run", progress=False)
@@ -196,6 +184,23 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
     print("sweep: image error", err_before, "->", err_after, "; pose error", angle_before, "->", angle_after)
     assert err_after < 0.95 * err_before  # measured 0.0660 -> 0.0610
     assert angle_after < angle_before
+
+
+@torch.no_grad()
+def _image_error(trainer, poses):
+    """Mean |render - target| over the training frames, rendered by ``trainer``'s avatar in ``poses``."""
+    from rmavatar.body import posed_vertices
+    from rmavatar.render.gaussians import render_gaussians
+
+    bg = torch.ones(3)
+    verts = posed_vertices(trainer.body, poses, trainer.poses.betas)
+    errs = []
+    for i in range(len(poses)):
+        gs = trainer.avatar(verts[i], poses.body_pose[i])
+        image = render_gaussians(gs, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
+                                 background=bg)[0]
+        errs.append((image - trainer.target(i, bg)).abs().mean())
+    return float(torch.stack(errs).mean())
 
 
 def _two_pass_cfg(data):
@@ -274,6 +279,74 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
         for key, value in a["avatar"]["state_dict"].items():
             assert torch.equal(value, b["avatar"]["state_dict"][key]), (sub, key)
         assert torch.equal(a["poses"]["delta"], b["poses"]["delta"]), sub
+
+
+def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_identical(noisy, tmp_path,
+                                                                                        monkeypatch):
+    """optim.pose_refits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
+    5 is an opacity reset in a run this short, so one earlier) the avatar being trained fits every held
+    pose again, at optim.pose_refit_lr; the refitted poses render
+    the frames closer to their images, the held bodies and face tables are posed again from them, and
+    RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
+    bit-identical."""
+    import rmavatar.evaluate.fit as fit_module
+    from rmavatar.body import posed_vertices
+
+    cfg = _two_pass_cfg(noisy)
+    cfg.optim.pose_refits = (0.625,)
+    cfg.optim.pose_refit_lr = 4e-3
+    cfg.optim.pose_sweep_steps = 10
+    seen, rates = [], []
+    original, original_fit = Trainer.sweep_poses, fit_module.fit_poses
+
+    def sweep(self):
+        before = self.poses.poses()
+        original(self)
+        after = self.poses.poses()
+        if self.poses.frozen:
+            betas = self.dataset.params("train")["betas"]
+            torch.testing.assert_close(self.vertices, posed_vertices(self.body, after, betas), atol=0, rtol=0)
+            assert torch.equal(self.face_tables, torch.stack([self.avatar.face_table(v) for v in self.vertices]))
+            seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
+
+    def fit(*args, **kwargs):
+        rates.append((args[6].lr_rotation, args[6].lr_translation))
+        return original_fit(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "fit_poses", fit)
+    monkeypatch.setattr(Trainer, "sweep_poses", sweep)
+    whole = tmp_path / "whole"
+    train(cfg, whole, progress=False)
+    assert [s[0] for s in seen] == [4]
+    assert rates == [(2e-2, 5e-4), (4e-3, 1e-4)]  # the first pass's sweep, then the refit
+    _, before, after, err_before, err_after = seen[0]
+    print("refit: image error", err_before, "->", err_after)
+    assert err_after < err_before
+    first, final = np.load(whole / "pose_pass" / "poses.npz"), np.load(whole / "poses.npz")
+    np.testing.assert_allclose(first["body_pose"], before.body_pose.numpy(), atol=1e-5)
+    np.testing.assert_allclose(final["body_pose"], after.body_pose.numpy(), atol=1e-5)
+    assert np.abs(final["body_pose"] - first["body_pose"]).max() > 1e-4
+    trained = load_trained(whole)
+    np.testing.assert_allclose(trained.training_poses.body_pose.numpy(), final["body_pose"], atol=1e-5)
+
+    stop = Trainer.step
+
+    def step(self):
+        out = stop(self)
+        if self.run_dir.name == "run" and self.iteration + 1 == 6:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    run = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "step", step)
+        assert train(cfg, run, progress=False).interrupted
+    train(None, run, resume=True, progress=False)
+    a, b = read_checkpoint(checkpoint_path(whole)), read_checkpoint(checkpoint_path(run))
+    assert a["iteration"] == b["iteration"] == 8
+    for key, value in a["avatar"]["state_dict"].items():
+        assert torch.equal(value, b["avatar"]["state_dict"][key]), key
+    assert torch.equal(a["poses"]["delta"], b["poses"]["delta"])
 
 
 def test_the_poses_file_round_trips_and_refuses_other_frames(tmp_path):

@@ -60,9 +60,17 @@ class OptimConfig:
     # test / novel_pose: 33.24 / 30.98 dB against 33.06 / 30.65 in one pass; true poses 34.33 / 31.73;
     # +29% training time; docs/train.md). 0 = one pass: the avatar that refined the poses is the result.
     pose_pass: float = 0.5
+    # Refits in the second pass: at these fractions of it the avatar being trained fits every held
+    # training pose again (pose_sweep_steps steps, rotations at pose_refit_lr, translations at 1/40 of
+    # it), then trains on from them. Why: the first pass's poses are only as exact as its avatar, which
+    # trained on poses that were moving; the second pass's avatar is sharper and aligns them better. A
+    # lower lr than the first pass's sweeps: from poses already nearly right, 30 steps at 2e-2 overshoot
+    # (16 frames 0.56 px off in the image: 0.61 px after, 0.49 at 5e-3; docs/train.md). Empty = none.
+    pose_refits: tuple[float, ...] = ()
+    pose_refit_lr: float = 5e-3
 
     def validate(self) -> "OptimConfig":
-        check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
+        check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),
                      nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier",
                                   "smooth_poses"))
         if self.iters < 1:
@@ -75,11 +83,13 @@ class OptimConfig:
             raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
         if not 0 <= self.pose_warmup < 1:
             raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
-        bad = not isinstance(self.pose_sweeps, (list, tuple)) or any(
-            isinstance(f, bool) or not isinstance(f, (int, float)) for f in self.pose_sweeps)
-        if bad or any(not 0 < f < 1 for f in self.pose_sweeps):
-            raise UserError(f"optim.pose_sweeps must be fractions of the run in (0, 1), got {self.pose_sweeps!r}")
-        self.pose_sweeps = tuple(float(f) for f in self.pose_sweeps)
+        for name in ("pose_sweeps", "pose_refits"):
+            value = getattr(self, name)
+            bad = not isinstance(value, (list, tuple)) or any(
+                isinstance(f, bool) or not isinstance(f, (int, float)) for f in value)
+            if bad or any(not 0 < f < 1 for f in value):
+                raise UserError(f"optim.{name} must be fractions of the run in (0, 1), got {value!r}")
+            setattr(self, name, tuple(float(f) for f in value))
         if self.pose_sweep_steps < 1:
             raise UserError(f"optim.pose_sweep_steps must be >= 1, got {self.pose_sweep_steps}")
         f = self.pose_pass
@@ -101,16 +111,17 @@ class OptimConfig:
         """Steps with frozen pose corrections; refinement starts at step ``pose_warmup_steps() + 1``."""
         return round(self.pose_warmup * self.iters)
 
-    def pose_sweep_iterations(self, schedule=None) -> set[int]:
-        """The iteration counts after which the training poses are fitted (before the next step), each
-        one that falls on an opacity reset of ``schedule`` (a density DensitySchedule; None: no density
-        control) moved one earlier. Why: right after a reset every opacity is at most
+    def pose_sweep_iterations(self, schedule=None, fractions: tuple[float, ...] | None = None) -> set[int]:
+        """The iteration counts after which the training poses are fitted (before the next step): at the
+        ``fractions`` of the run (default ``pose_sweeps``; the second pass: ``pose_refits``), each one that
+        falls on an opacity reset of ``schedule`` (a density DensitySchedule; None: no density control)
+        moved one earlier. Why: right after a reset every opacity is at most
         ``density.reset_opacity_to`` (0.01) and the avatar is nearly invisible, so fitting the poses to
         its renders learns little (measured at 128 px, 500 steps, 3 degrees of pose noise: sweeps at 0.3
         and 0.6 of the run, both on resets, scored 0.54 dB below the same sweeps one step earlier on
         fitted test frames, and 2.1 dB below on the avatar's own training frames; docs/train.md)."""
         on_reset = (lambda s: False) if schedule is None else schedule.reset_at
-        planned = (max(1, round(f * self.iters)) for f in self.pose_sweeps)
+        planned = (max(1, round(f * self.iters)) for f in (self.pose_sweeps if fractions is None else fractions))
         return {s - 1 if s > 1 and on_reset(s) else s for s in planned}
 
     def pose_lr_scale(self, iteration: int) -> float:

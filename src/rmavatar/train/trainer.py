@@ -193,7 +193,7 @@ class _Interrupt:
 
 
 # A resumed run whose config lacks a setting was trained without it: these values keep it that way.
-_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0}}
+_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0, "pose_refits": ()}}
 
 # The first pass of a two-pass run (optim.pose_pass) is a run of its own in this folder of RUN.
 POSE_PASS = "pose_pass"
@@ -279,13 +279,13 @@ def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple
     if not iters:
         return None, 0
     first = from_dict(TrainConfig, to_dict(cfg))
-    first.optim.iters, first.optim.pose_pass = iters, 0.0
+    first.optim.iters, first.optim.pose_pass, first.optim.pose_refits = iters, 0.0, ()
     where = checkpoint_path(run_dir / POSE_PASS)
     if not where.is_file():
         return first, 0
     payload = read_checkpoint(where)
     saved = payload["config"]
-    differ = config_differences(saved, first)
+    differ = config_differences(saved, first, ignore=("optim.pose_refits", "optim.pose_refit_lr"))  # not the first's
     if differ:
         raise UserError(f"{run_dir / POSE_PASS} holds a first pass trained with other settings than this "
                         f"run's ({', '.join(differ[:6])}); choose another folder")
@@ -407,14 +407,19 @@ class Trainer:
             print(f"resuming {self.run_dir} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
         elif self.poses is not None and self.poses.frozen:  # the second pass starts from the first's poses
             self.poses.set_poses(read_poses(self.run_dir / POSE_PASS / "poses.npz", params["index"], split))
-        trained_on = poses if self.poses is None or not self.poses.frozen else self.poses.poses()
-        self.vertices = posed_vertices(self.body, trained_on, params["betas"]).to(dev)  # [n,V,3], fixed for the run
-        self.body_pose = trained_on.body_pose.to(dev)  # [n,69]
+        self._hold_poses(poses if self.poses is None or not self.poses.frozen else self.poses.poses())
         self.ckpt = None  # free the loaded tensors
         self._cache_frames(FRAME_CACHE_BYTES)
         # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
         for stale in checkpoint_path(self.run_dir).parent.glob(".last.*.tmp.pt"):
             stale.unlink(missing_ok=True)
+
+    def _hold_poses(self, poses: PoseSequence) -> None:
+        """Pose the training frames' bodies once: ``vertices`` [n,V,3] and ``body_pose`` [n,69], what
+        every step without per-step refinement uses, until a refit poses them again."""
+        betas = self.dataset.params(self.cfg.data.split)["betas"]
+        self.vertices = posed_vertices(self.body, poses, betas).to(self.device)
+        self.body_pose = poses.body_pose.to(self.device)
 
     def _cache_frames(self, budget: int) -> None:
         """Fill ``face_tables`` [n,Fb,38], ``targets`` [n,H,W,3] and ``target_units`` (LPIPS, per frame)
@@ -424,9 +429,7 @@ class Trainer:
         self._cached_bg = None
         need = n * self.avatar.binding_faces.shape[0] * FACE_TABLE * self.vertices.element_size()
         if need <= budget:
-            with torch.no_grad():
-                # one frame at a time: the same arithmetic, to the bit, as an uncached step's
-                self.face_tables = torch.stack([self.avatar.face_table(v) for v in self.vertices])
+            self.face_tables = self._face_tables()
             budget -= need
         if self.cfg.background not in ("white", "black"):
             return  # a new random background every step: nothing fixed to keep
@@ -441,6 +444,12 @@ class Trainer:
             first = lpips_units(self.targets[0])
             if n * sum(u.numel() * u.element_size() for u in first) <= budget:
                 self.target_units = [first] + [lpips_units(t) for t in self.targets[1:]]
+
+    @torch.no_grad()
+    def _face_tables(self) -> torch.Tensor:
+        """The held bodies' face tables [n,Fb,38], one frame at a time: the same arithmetic, to the bit,
+        as an uncached step's."""
+        return torch.stack([self.avatar.face_table(v) for v in self.vertices])
 
     def target_lpips_units(self, i: int, bg: torch.Tensor) -> list[torch.Tensor] | None:
         """The cached LPIPS features of ``target(i, bg)`` (for ``total_loss(lpips_units=)``), or None."""
@@ -546,8 +555,12 @@ class Trainer:
         try:
             with _Interrupt() as stop:
                 schedule = self.density.schedule if cfg.density.enabled else None
-                refining = self.poses is not None and not self.poses.frozen
-                sweeps = cfg.optim.pose_sweep_iterations(schedule) if refining else set()
+                if self.poses is None:
+                    sweeps = set()
+                elif self.poses.frozen:  # the second pass: its refits
+                    sweeps = cfg.optim.pose_sweep_iterations(schedule, cfg.optim.pose_refits)
+                else:
+                    sweeps = cfg.optim.pose_sweep_iterations(schedule)
                 while self.iteration < total:
                     if self.iteration in sweeps:  # after that iteration's checkpoint: a resume redoes it
                         self.sweep_poses()
@@ -609,9 +622,10 @@ class Trainer:
             self.poses.load_state_dict(state, where)
 
     def sweep_poses(self) -> None:
-        """A pose sweep (``optim.pose_sweeps``): every training frame's corrected pose fitted to its image
-        and mask with the avatar held still (:func:`rmavatar.evaluate.fit.fit_poses`,
-        ``optim.pose_sweep_steps`` steps), then made the frame's new corrected pose."""
+        """A pose sweep (``optim.pose_sweeps``; in the second pass, a refit, ``optim.pose_refits``): every
+        training frame's corrected pose fitted to its image and mask with the avatar held still
+        (:func:`rmavatar.evaluate.fit.fit_poses`, ``optim.pose_sweep_steps`` steps), then made the frame's
+        new corrected pose; held poses are posed again."""
         from rmavatar.evaluate.fit import FitConfig, fit_poses
 
         split, n = self.cfg.data.split, len(self.poses)
@@ -620,10 +634,16 @@ class Trainer:
         if self.progress:
             print(f"pose sweep after iteration {self.iteration}: fitting the {n} training poses "
                   f"({self.cfg.optim.pose_sweep_steps} steps each)", flush=True)
+        fit = FitConfig(steps=self.cfg.optim.pose_sweep_steps)
+        if self.poses.frozen:
+            fit.lr_rotation, fit.lr_translation = self.cfg.optim.pose_refit_lr, self.cfg.optim.pose_refit_lr / 40
         fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas,
-                           self.dataset.frames(split, n), bg, FitConfig(steps=self.cfg.optim.pose_sweep_steps),
-                           progress=self.progress)
+                           self.dataset.frames(split, n), bg, fit, progress=self.progress)
         self.poses.set_poses(fitted)
+        if self.poses.frozen:
+            self._hold_poses(self.poses.poses())
+            if self.face_tables is not None:
+                self.face_tables = self._face_tables()
 
     def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Posed vertices [V,3], body_pose [69] and face table (``Avatar.face_table``, or None: to be
