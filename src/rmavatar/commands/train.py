@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "then refined by a first pass of half the iterations (RUN/pose_pass) that fits "
                              "them to every training image at 20%% and 45%% of it, then the avatar is trained "
                              "afresh on them for the full iterations (optim.smooth_poses, optim.pose_sweeps, "
-                             "optim.pose_pass; docs/train.md). Default: on when the dataset's poses are "
+                             "optim.pose_pass; refits in the second pass: optim.pose_refits; docs/train.md). "
+                             "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")

@@ -193,7 +193,7 @@ class _Interrupt:
 
 
 # A resumed run whose config lacks a setting was trained without it: these values keep it that way.
-_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0, "pose_refits": ()}}
+_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0}}
 
 # The first pass of a two-pass run (optim.pose_pass) is a run of its own in this folder of RUN.
 POSE_PASS = "pose_pass"
