@@ -94,6 +94,10 @@ class Dataset:
         w, h = self.image_size
         return f"<{type(self).__name__} {self.kind}:{self.name} {w}x{h} {counts}>"
 
+    def reserve_cache(self, mb: float) -> None:
+        """Let the decoded-image cache hold up to ``mb`` MiB (it is never made smaller)."""
+        self._cache_limit = max(self._cache_limit, int(mb * 2**20))
+
     def num_frames(self, split: str) -> int:
         return len(self._record_list(split))
 

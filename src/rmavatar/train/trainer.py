@@ -35,7 +35,7 @@ from rmavatar.avatar.trained import (
     training_betas,
 )
 from rmavatar.body import PoseSequence, load_body_model, posed_vertices, smooth_poses
-from rmavatar.data import load_dataset
+from rmavatar.data import Dataset, load_dataset
 from rmavatar.data.registry import parse_spec
 from rmavatar.render.gaussians import render_gaussians
 from rmavatar.train.checkpoint import (
@@ -249,7 +249,7 @@ def train(
         cfg.data.path = normalize_data_spec(cfg.data.path)
     # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
     # broken frame leaves nothing behind and is not found hours in.
-    dataset = load_dataset(cfg.data.path, size=cfg.data.size)
+    dataset = _open_dataset(cfg)
     check_files(dataset, [cfg.data.split], progress=progress)
     first, done = _first_pass(cfg, run_dir, dataset.poses_estimated) if ckpt is None else (None, 0)
     prepare_run_dir(run_dir, cfg.data.path, resume and not in_pose_pass)
@@ -266,7 +266,16 @@ def train(
             result = train(first, where, progress=progress, on_iteration=on_iteration)
         if result.interrupted:
             return result
-    return Trainer(cfg, run_dir, ckpt, progress, on_iteration).run()
+    return Trainer(cfg, run_dir, ckpt, progress, on_iteration, dataset=dataset).run()
+
+
+def _open_dataset(cfg: TrainConfig) -> Dataset:
+    """The training dataset, keeping every decoded training frame (image + mask, float32) in memory
+    when that fits in 6 GB: re-reading large PNGs each step would cost more than a GPU step."""
+    dataset = load_dataset(cfg.data.path, size=cfg.data.size)
+    w, h = dataset.image_size
+    dataset.reserve_cache(min(dataset.num_frames(cfg.data.split) * w * h * 16 / 2**20 + 64, 6144))
+    return dataset
 
 
 def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple[TrainConfig | None, int]:
@@ -337,8 +346,9 @@ class Trainer:
     """
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, checkpoint: dict | None = None, progress: bool = True,
-                 on_iteration: Callable[[int, int], None] | None = None):
+                 on_iteration: Callable[[int, int], None] | None = None, dataset: Dataset | None = None):
         self.cfg = cfg
+        self.dataset = dataset
         self.run_dir = run_dir
         self.ckpt = checkpoint
         self.progress = progress
@@ -350,15 +360,10 @@ class Trainer:
         if cfg.threads > 0:
             set_threads(cfg.threads)
         keep_freed_memory()
-        self.dataset = load_dataset(cfg.data.path, size=cfg.data.size)
+        if self.dataset is None:
+            self.dataset = _open_dataset(cfg)
         split = cfg.data.split
         n = self.dataset.num_frames(split)
-        # Keep every decoded training frame (image + mask, float32) in memory when it fits in 6 GB:
-        # re-reading large PNGs each step would cost more than a GPU step.
-        w, h = self.dataset.image_size
-        need_mb = n * w * h * 16 / 2**20 + 64
-        if need_mb > 1024:
-            self.dataset = load_dataset(cfg.data.path, size=cfg.data.size, cache_mb=min(need_mb, 6144))
         params = self.dataset.params(split)
         spec, gender = resolve_body(cfg, self.dataset)
         if self.ckpt is not None:
@@ -632,7 +637,8 @@ class Trainer:
         # Any fixed background does: the targets are composited with their masks over the same one.
         bg = background_color("black" if self.cfg.background == "black" else "white", self.bg_generator, self.device)
         if self.progress:
-            print(f"pose sweep after iteration {self.iteration}: fitting the {n} training poses "
+            what = "pose refit" if self.poses.frozen else "pose sweep"
+            print(f"{what} after iteration {self.iteration}: fitting the {n} training poses "
                   f"({self.cfg.optim.pose_sweep_steps} steps each)", flush=True)
         fit = FitConfig(steps=self.cfg.optim.pose_sweep_steps)
         if self.poses.frozen:
