@@ -13,7 +13,7 @@ import torch
 
 from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
 from rmavatar.train.config import TrainConfig
-from rmavatar.train.trainer import Trainer, train
+from rmavatar.train.trainer import Trainer, _first_pass, train
 
 SIZE = 48
 
@@ -272,6 +272,10 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
     if where == "pose_pass":  # a fresh start over it with other settings would mix two runs: refused
         with pytest.raises(UserError, match="other settings"):
             train(other, run, progress=False)
+        # the refits' settings are the second pass's alone: the first pass is taken over as it is
+        second = _two_pass_cfg(noisy)
+        second.optim.pose_refits, second.optim.pose_refit_lr, second.optim.pose_refit_steps = (0.5,), 1e-3, 3
+        assert _first_pass(second, run, True)[1] == 2
     train(None, run, resume=True, progress=False)
     for sub in ("pose_pass", ""):
         a, b = read_checkpoint(checkpoint_path(whole / sub)), read_checkpoint(checkpoint_path(run / sub))
@@ -285,7 +289,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
                                                                                         monkeypatch):
     """optim.pose_refits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
     5 is an opacity reset in a run this short, so one earlier) the avatar being trained fits every held
-    pose again, at optim.pose_refit_lr; the refitted poses render
+    pose again, at optim.pose_refit_lr for optim.pose_refit_steps; the refitted poses render
     the frames closer to their images, the held bodies and face tables are posed again from them, and
     RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
     bit-identical."""
@@ -296,6 +300,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     cfg.optim.pose_refits = (0.625,)
     cfg.optim.pose_refit_lr = 4e-3
     cfg.optim.pose_sweep_steps = 10
+    cfg.optim.pose_refit_steps = 7
     seen, rates = [], []
     original, original_fit = Trainer.sweep_poses, fit_module.fit_poses
 
@@ -310,7 +315,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
             seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
 
     def fit(*args, **kwargs):
-        rates.append((args[6].lr_rotation, args[6].lr_translation))
+        rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps))
         return original_fit(*args, **kwargs)
 
     monkeypatch.setattr(fit_module, "fit_poses", fit)
@@ -318,7 +323,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     whole = tmp_path / "whole"
     train(cfg, whole, progress=False)
     assert [s[0] for s in seen] == [4]
-    assert rates == [(2e-2, 5e-4), (4e-3, 1e-4)]  # the first pass's sweep, then the refit
+    assert rates == [(2e-2, 5e-4, 10), (4e-3, 1e-4, 7)]  # the first pass's sweep, then the refit
     _, before, after, err_before, err_after = seen[0]
     print("refit: image error", err_before, "->", err_after)
     assert err_after < err_before

@@ -61,7 +61,7 @@ class OptimConfig:
     # +29% training time; docs/train.md). 0 = one pass: the avatar that refined the poses is the result.
     pose_pass: float = 0.5
     # Refits in the second pass: at these fractions of it the avatar being trained fits every held
-    # training pose again (pose_sweep_steps steps, rotations at pose_refit_lr, translations at 1/40 of
+    # training pose again (pose_refit_steps steps, rotations at pose_refit_lr, translations at 1/40 of
     # it), then trains on from them. Why: the first pass's poses are only as exact as its avatar, which
     # trained on poses that were moving; the second pass's avatar is sharper and aligns them better (D = 3
     # at the demo's size, fitted test: none 33.24 dB, [0.5] 33.46, [0.4, 0.7] 33.56; true poses 34.33;
@@ -71,6 +71,7 @@ class OptimConfig:
     # captured clip) shows only after test-time fitting and costs 40-50% more training at 1,000 iterations.
     pose_refits: tuple[float, ...] = ()
     pose_refit_lr: float = 5e-3
+    pose_refit_steps: int = 30
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),
@@ -93,8 +94,10 @@ class OptimConfig:
             if bad or any(not 0 < f < 1 for f in value):
                 raise UserError(f"optim.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
-        if self.pose_sweep_steps < 1:
-            raise UserError(f"optim.pose_sweep_steps must be >= 1, got {self.pose_sweep_steps}")
+        for name in ("pose_sweep_steps", "pose_refit_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise UserError(f"optim.{name} must be a whole number of steps >= 1, got {value!r}")
         f = self.pose_pass
         if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1:
             raise UserError(f"optim.pose_pass must be a fraction of iters in [0, 1], got {self.pose_pass!r}")

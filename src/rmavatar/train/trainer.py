@@ -294,7 +294,8 @@ def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple
         return first, 0
     payload = read_checkpoint(where)
     saved = payload["config"]
-    differ = config_differences(saved, first, ignore=("optim.pose_refits", "optim.pose_refit_lr"))  # not the first's
+    differ = config_differences(saved, first, ignore=("optim.pose_refits", "optim.pose_refit_lr",
+                                                          "optim.pose_refit_steps"))  # not the first's
     if differ:
         raise UserError(f"{run_dir / POSE_PASS} holds a first pass trained with other settings than this "
                         f"run's ({', '.join(differ[:6])}); choose another folder")
@@ -629,20 +630,23 @@ class Trainer:
     def sweep_poses(self) -> None:
         """A pose sweep (``optim.pose_sweeps``; in the second pass, a refit, ``optim.pose_refits``): every
         training frame's corrected pose fitted to its image and mask with the avatar held still
-        (:func:`rmavatar.evaluate.fit.fit_poses`, ``optim.pose_sweep_steps`` steps), then made the frame's
+        (:func:`rmavatar.evaluate.fit.fit_poses`, ``optim.pose_sweep_steps`` steps; a refit
+        ``optim.pose_refit_steps``), then made the frame's
         new corrected pose; held poses are posed again."""
         from rmavatar.evaluate.fit import FitConfig, fit_poses
 
         split, n = self.cfg.data.split, len(self.poses)
+        optim = self.cfg.optim
+        steps = optim.pose_refit_steps if self.poses.frozen else optim.pose_sweep_steps
         # Any fixed background does: the targets are composited with their masks over the same one.
         bg = background_color("black" if self.cfg.background == "black" else "white", self.bg_generator, self.device)
         if self.progress:
             what = "pose refit" if self.poses.frozen else "pose sweep"
             print(f"{what} after iteration {self.iteration}: fitting the {n} training poses "
-                  f"({self.cfg.optim.pose_sweep_steps} steps each)", flush=True)
-        fit = FitConfig(steps=self.cfg.optim.pose_sweep_steps)
+                  f"({steps} steps each)", flush=True)
+        fit = FitConfig(steps=steps)
         if self.poses.frozen:
-            fit.lr_rotation, fit.lr_translation = self.cfg.optim.pose_refit_lr, self.cfg.optim.pose_refit_lr / 40
+            fit.lr_rotation, fit.lr_translation = optim.pose_refit_lr, optim.pose_refit_lr / 40
         fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas,
                            self.dataset.frames(split, n), bg, fit, progress=self.progress)
         self.poses.set_poses(fitted)
