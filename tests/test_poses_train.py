@@ -13,6 +13,7 @@ import torch
 
 from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
 from rmavatar.train.config import TrainConfig
+import rmavatar.train.trainer as trainer_module
 from rmavatar.train.trainer import Trainer, _first_pass, train
 
 SIZE = 48
@@ -275,8 +276,13 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
         # the refits' settings are the second pass's alone: the first pass is taken over as it is
         second = _two_pass_cfg(noisy)
         second.optim.pose_refits, second.optim.pose_refit_lr, second.optim.pose_refit_steps = (0.5,), 1e-3, 3
-        assert _first_pass(second, run, True)[1] == 2
-    train(None, run, resume=True, progress=False)
+        assert _first_pass(second, run, True)[1]["iteration"] == 2
+    opened, reads, open_dataset = [], [], trainer_module._open_dataset
+    with monkeypatch.context() as m:  # both passes share one dataset; each checkpoint is read once
+        m.setattr(trainer_module, "_open_dataset", lambda c: opened.append(c) or open_dataset(c))
+        m.setattr(trainer_module, "read_checkpoint", lambda path: reads.append(str(path)) or read_checkpoint(path))
+        train(None, run, resume=True, progress=False)
+    assert len(opened) == 1 and len(reads) == 1, reads
     for sub in ("pose_pass", ""):
         a, b = read_checkpoint(checkpoint_path(whole / sub)), read_checkpoint(checkpoint_path(run / sub))
         assert a["iteration"] == b["iteration"]

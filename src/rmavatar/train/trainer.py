@@ -217,7 +217,13 @@ def train(
     ``on_iteration(iteration, total)`` is called after every iteration, once any checkpoint of that
     iteration is written (``rmavatar batch`` reports progress with it).
     """
-    run_dir = Path(run_dir)
+    return _train(cfg, Path(run_dir), resume, data, overrides, progress, on_iteration)
+
+
+def _train(cfg: TrainConfig | None, run_dir: Path, resume: bool, data: str | None, overrides: list | None,
+           progress: bool, on_iteration, dataset: Dataset | None = None, ckpt: dict | None = None) -> TrainResult:
+    """:func:`train`; a two-pass run's first pass is given the second's opened ``dataset`` (the same
+    data, its frames already read and checked) and, resumed, its checkpoint ``ckpt`` as read already."""
     check_writable_folder(run_dir / "config.yaml", f"--out {run_dir}", create=True)
     in_pose_pass = (resume and not checkpoint_path(run_dir).is_file()
                     and checkpoint_path(run_dir / POSE_PASS).is_file())
@@ -227,7 +233,7 @@ def train(
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
     elif resume:
-        ckpt = _resume_payload(run_dir, data)
+        ckpt = ckpt or _resume_payload(run_dir, data)
         saved = ckpt["config"]
         # Settings newer than the run take the values that reproduce how it was trained.
         for section, values in _BEFORE_THE_SETTING.items():
@@ -240,7 +246,6 @@ def train(
             raise UserError(f"--iters {cfg.optim.iters} is below the {ckpt['iteration']} iterations {run_dir} has "
                             "done: give more to continue it (or start a new run)")
     else:
-        ckpt = None
         if cfg is None:
             raise ValueError("train() needs a config for a fresh run")
         cfg = from_dict(TrainConfig, to_dict(cfg)).validate()  # a private copy
@@ -249,9 +254,11 @@ def train(
         cfg.data.path = normalize_data_spec(cfg.data.path)
     # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
     # broken frame leaves nothing behind and is not found hours in.
-    dataset = _open_dataset(cfg)
-    check_files(dataset, [cfg.data.split], progress=progress)
-    first, done = _first_pass(cfg, run_dir, dataset.poses_estimated) if ckpt is None else (None, 0)
+    if dataset is None:
+        dataset = _open_dataset(cfg)
+        check_files(dataset, [cfg.data.split], progress=progress)
+    first, first_ckpt = _first_pass(cfg, run_dir, dataset.poses_estimated) if ckpt is None else (None, None)
+    done = 0 if first_ckpt is None else int(first_ckpt["iteration"])
     prepare_run_dir(run_dir, cfg.data.path, resume and not in_pose_pass)
     save_config(cfg, run_dir / "config.yaml")
     if first is not None and done < first.optim.iters:
@@ -261,9 +268,9 @@ def train(
                   f"avatar is trained afresh on them for {cfg.optim.iters}", flush=True)
         if done:
             keep = [o for o in overrides or [] if (o[1], o[2]) != ("optim", "iters")]  # its length is its own
-            result = train(None, where, resume=True, overrides=keep, progress=progress, on_iteration=on_iteration)
+            result = _train(None, where, True, None, keep, progress, on_iteration, dataset, first_ckpt)
         else:
-            result = train(first, where, progress=progress, on_iteration=on_iteration)
+            result = _train(first, where, False, None, None, progress, on_iteration, dataset)
         if result.interrupted:
             return result
     return Trainer(cfg, run_dir, ckpt, progress, on_iteration, dataset=dataset).run()
@@ -278,20 +285,20 @@ def _open_dataset(cfg: TrainConfig) -> Dataset:
     return dataset
 
 
-def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple[TrainConfig | None, int]:
-    """The config of the first pass of a two-pass run (``optim.pose_pass``; None: one pass) and the
-    iterations it has done: a run of its own in RUN/pose_pass that refines the training poses (with the
-    sweeps); the second pass trains the avatar afresh on the poses it leaves in RUN/pose_pass/poses.npz.
+def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple[TrainConfig | None, dict | None]:
+    """The config of the first pass of a two-pass run (``optim.pose_pass``; None: one pass) and its
+    checkpoint (None: not begun): a run of its own in RUN/pose_pass that refines the training poses (with
+    the sweeps); the second pass trains the avatar afresh on the poses it leaves in RUN/pose_pass/poses.npz.
     A first pass already there (stopped, or done) must have been trained with the same settings; its
     length is its own."""
     iters = cfg.optim.pose_pass_iters(poses_estimated)
     if not iters:
-        return None, 0
+        return None, None
     first = from_dict(TrainConfig, to_dict(cfg))
     first.optim.iters, first.optim.pose_pass, first.optim.pose_refits = iters, 0.0, ()
     where = checkpoint_path(run_dir / POSE_PASS)
     if not where.is_file():
-        return first, 0
+        return first, None
     payload = read_checkpoint(where)
     saved = payload["config"]
     differ = config_differences(saved, first, ignore=("optim.pose_refits", "optim.pose_refit_lr",
@@ -300,7 +307,7 @@ def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple
         raise UserError(f"{run_dir / POSE_PASS} holds a first pass trained with other settings than this "
                         f"run's ({', '.join(differ[:6])}); choose another folder")
     first.optim.iters = int(saved["optim"]["iters"])
-    return first, int(payload["iteration"])
+    return first, payload
 
 
 def _resume_payload(run_dir: Path, data: str | None) -> dict:
