@@ -79,7 +79,7 @@ class OptimConfig:
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),
                      nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier",
-                                  "smooth_poses"))
+                                  "smooth_poses"), at_least_one=("pose_sweep_steps", "pose_refit_steps"))
         if self.iters < 1:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
@@ -97,10 +97,6 @@ class OptimConfig:
             if bad or any(not 0 < f < 1 for f in value):
                 raise UserError(f"optim.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
-        for name in ("pose_sweep_steps", "pose_refit_steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise UserError(f"optim.{name} must be a whole number of steps >= 1, got {value!r}")
         f = self.pose_pass
         if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1:
             raise UserError(f"optim.pose_pass must be a fraction of iters in [0, 1], got {self.pose_pass!r}")
