@@ -1,18 +1,19 @@
 """Measure `rmavatar capture` on a synthetic subject whose true poses are known.
 
     PYTHONPATH=src python scripts/measure_capture.py WORK [--size 256] [--seed 0] [--iters 1000]
-        [--refine-poses auto|on|off] [--skip-training] [--json OUT]
+        [--refine-poses auto|on|off] [--no-still] [--skip-training] [--json OUT]
 
 Makes the subject (`rmavatar synth`, default 100 train + 30 test + 30 novel-pose frames), renders its
-turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view,
-and reports the fitted body against the truth per split: mean 2D joint error (% of the body's height
-in the image) and root-aligned 3D joint error (mm) over the 24 joints. Unless --skip-training, it then
-trains one avatar on the true poses and one on the captured data with the demo's config (--iters,
-max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's test and novel_pose splits
-(true poses, the run's own body). --refine-poses sets the captured-data run's ``optim.refine_poses``
-(auto: on, as the captured dataset says its poses are estimated); its run is ``WORK/run_captured`` for
-auto and ``WORK/run_captured_refine_{on,off}`` otherwise. Everything goes under WORK; finished steps are
-reused.
+turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view
+(the turn, where the subject holds its A-pose, with ``--still``; with --no-still, without it, into
+``WORK/captured_turn_free``), and reports the fitted body against the truth per split: mean 2D joint
+error (% of the body's height in the image) and root-aligned 3D joint error (mm) over the 24 joints.
+Unless --skip-training, it then trains one avatar on the true poses and one on the captured turn with
+the demo's config (--iters, max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's
+test and novel_pose splits (true poses, the run's own body). --refine-poses sets the captured-data
+run's ``optim.refine_poses`` (auto: on, as the captured dataset says its poses are estimated); its run
+is ``WORK/run_captured`` for auto and ``WORK/run_captured_refine_{on,off}`` otherwise (``_free``
+appended with --no-still). Everything goes under WORK; finished steps are reused.
 """
 
 from __future__ import annotations
@@ -95,11 +96,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--iters", type=int, default=1000)
     parser.add_argument("--refine-poses", choices=("auto", "on", "off"), default="auto")
+    parser.add_argument("--no-still", action="store_true", help="capture the turn without --still")
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
 
     from rmavatar.capture import CaptureConfig, capture
+    from rmavatar.capture.fit import STILL_HOLD_POSE, FitConfig
     from rmavatar.data import load_dataset
     from rmavatar.data.synth import SynthConfig, synthesize
 
@@ -113,12 +116,16 @@ def main() -> None:
     fov = math.degrees(2 * math.atan(ds.image_size[0] / 2 / fx))
     result = {"fov": fov, "fit": {}, "seconds_per_frame": {}}
     clips = {"turn": ds.splits["train"] + ds.splits["test"], "novel": ds.splits["novel_pose"]}
+    captured = {"turn": work / ("captured_turn_free" if args.no_still else "captured_turn"),
+                "novel": work / "captured_novel"}
     for name, frames in clips.items():
-        video, out = work / f"{name}.mp4", work / f"captured_{name}"
+        video, out = work / f"{name}.mp4", captured[name]
         if not video.is_file():
             write_video(truth, video, frames, ds.fps or 7.5)
         if not (out / "meta.yaml").is_file():
-            s = capture(video, out, CaptureConfig(fov=fov), progress=True)
+            still = name == "turn" and not args.no_still
+            fit = FitConfig(hold_pose=STILL_HOLD_POSE if still else 0.0)
+            s = capture(video, out, CaptureConfig(fov=fov, fit=fit), progress=True)
             result["seconds_per_frame"][name] = s["seconds_per_frame"]
         result["fit"][name] = fit_errors(truth, out, frames[0])
     print(json.dumps(result, indent=1))
@@ -127,7 +134,9 @@ def main() -> None:
         refine = {"auto": None, "on": True, "off": False}[args.refine_poses]
         run = work / ("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}")
         result["refine_poses"] = args.refine_poses
-        result["avatar_captured"] = train_and_eval(work / "captured_turn", run, truth, args.iters, args.size, refine)
+        if args.no_still:
+            run = run.with_name(run.name + "_free")
+        result["avatar_captured"] = train_and_eval(captured["turn"], run, truth, args.iters, args.size, refine)
         print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured")}, indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")

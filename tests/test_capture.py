@@ -164,6 +164,73 @@ def test_proxy_poses_like_the_body(anny):
     assert torch.allclose(proxy.weights.sum(1), torch.ones(len(ids)), atol=0.02)
 
 
+def test_hold_term():
+    pose = torch.zeros(3, 69, dtype=torch.float64)
+    assert float(F.hold_term(pose + 0.3)) == 0.0  # the same pose in every frame costs nothing
+    pose[0, 5], pose[1, 5] = 0.2, -0.1  # mean 0.1/3: deviations 0.2 - m, -0.1 - m, -m
+    m = 0.1 / 3
+    assert float(F.hold_term(pose)) == pytest.approx(((0.2 - m) ** 2 + (0.1 + m) ** 2 + m**2) / 3)
+
+
+def _held_turn(anny, noise: float, T: int = 8):
+    """Observations of the anny body holding one pose while it turns in front of the camera: its
+    landmarks projected exactly, plus Gaussian noise of ``noise`` (fraction of the height) per frame;
+    every landmark visible, the world landmarks exact, no mask (every point counts as inside)."""
+    g = torch.Generator().manual_seed(7)
+    pose = (F.rest_pose() + 0.1 * torch.randn(69, generator=g)).clamp(*F.limit_bounds())
+    upright = Rotation.from_euler("x", 180, degrees=True)  # the body's y up is the camera's -y
+    go = torch.tensor(np.stack([(upright * Rotation.from_euler("y", a, degrees=True)).as_rotvec()
+                                for a in np.linspace(-60, 60, T)]), dtype=torch.float32)  # fmt: skip
+    transl = torch.tensor([0.0, 0.0, 3.5]).expand(T, 3)
+    with torch.no_grad():
+        out = anny(None, go, pose.expand(T, 69), transl)
+        points = body_landmarks(out.joints, joint_rotations(go, pose.expand(T, 69)))
+    K = torch.tensor([[300.0, 0, 128], [0, 300.0, 128], [0, 0, 1]])
+    ys = F.project(out.vertices, K)[..., 1]
+    height = float((ys.max(1).values - ys.min(1).values).median())
+    uv = F.project(points, K) + noise * height * torch.randn(*points.shape[:2], 2, generator=g)
+    hips = points[:, [USED.index(23), USED.index(24)]].mean(1, keepdim=True)
+    obs = F.Observations(keypoints=uv, visibility=torch.ones(uv.shape[:2]), world=points - hips,
+                         outside=torch.zeros(T, 8, 8), K=K, size=(256, 256), gaps=torch.ones(T - 1),
+                         height_px=height)
+    return obs, pose, go
+
+
+def _angle_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Geodesic angles (degrees) between axis-angle rotations a, b [...,3] (broadcast)."""
+    a, b = np.broadcast_arrays(a, b)
+    ra, rb = Rotation.from_rotvec(a.reshape(-1, 3)), Rotation.from_rotvec(b.reshape(-1, 3))
+    return np.degrees((ra.inv() * rb).magnitude()).reshape(a.shape[:-1])
+
+
+def _fit_errors(anny, obs, pose, go, hold: float) -> tuple[float, float, float]:
+    """Fit (the smoothness terms off: 8 frames far apart) and return the mean 2D joint error (% of the
+    height), the root-aligned 3D joint error (mm) and the spread of the fitted body_pose about its mean
+    (degrees)."""
+    torch.manual_seed(0)
+    cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0, hold_pose=hold)
+    r = F.fit_body(anny, obs, cfg, progress=False)
+    T = len(go)
+    with torch.no_grad():
+        t = anny(None, go, pose.expand(T, 69), torch.tensor([0.0, 0.0, 3.5]).expand(T, 3))
+        f = anny(None, *(torch.tensor(x) for x in (r.global_orient, r.body_pose, r.transl)))
+    e2 = (F.project(t.joints, obs.K) - F.project(f.joints, obs.K)).norm(dim=-1) / obs.height_px * 100
+    e3 = ((t.joints - t.joints[:, :1]) - (f.joints - f.joints[:, :1])).norm(dim=-1) * 1000
+    bp = r.body_pose.reshape(T, 23, 3)
+    return float(e2.mean()), float(e3.mean()), float(_angle_error(bp, bp.mean(0, keepdims=True)).mean())
+
+
+def test_fit_recovers_a_turning_body_and_holding_the_pose_removes_noise(anny):
+    # exact landmarks: measured 0.20 % and 17 mm (twists about a bone and the depth of a frontal view
+    # are not in the landmarks)
+    e2, e3, _ = _fit_errors(anny, *_held_turn(anny, noise=0.0), hold=0.0)
+    assert e2 < 0.5 and e3 < 30, (e2, e3)
+    # landmarks 1.5 % of the height off at random: measured 61 -> 27 mm, a spread of 14 -> 1.2 degrees
+    noisy = _held_turn(anny, noise=0.015)
+    free, held = _fit_errors(anny, *noisy, hold=0.0), _fit_errors(anny, *noisy, hold=F.STILL_HOLD_POSE)
+    assert held[1] < 0.7 * free[1] and held[2] < 0.3 * free[2], (free, held)
+
+
 # --- camera, frames, flags ----------------------------------------------------------------------------
 
 def test_intrinsics():

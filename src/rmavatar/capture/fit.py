@@ -14,7 +14,9 @@ person's height in the image so that weights do not depend on the resolution:
   distance to the mask (the body must lie inside the clothed silhouette; the converse would inflate it);
 - limits: joint angles past anatomical limits (a box on each joint's axis-angle components);
 - prior: a weak pull of body_pose towards a relaxed A-pose, and of SMPL betas towards zero;
-- smooth: squared acceleration of the landmark points (body heights per frame^2) and of body_pose.
+- smooth: squared acceleration of the landmark points (body heights per frame^2) and of body_pose;
+- hold (off unless asked for, ``--still``): squared distance of each frame's body_pose from the clip's
+  mean, for a person who holds one pose while turning.
 
 The global rotation is optimised as a residual on its initial value (R = R0 exp(d)), so a person
 seen upright (about 180 degrees from the camera's y-down axes) is no singularity.
@@ -67,6 +69,14 @@ A_POSE_SHOULDER = 1.05
 A_POSE_ELBOW = 0.15
 
 
+# hold_pose for a person who holds one pose (``rmavatar capture --still``): the recommended recording, a
+# turn in a held A-pose, where MediaPipe's errors wander with the facing angle but the pose does not.
+# 1 cut the synthetic turn's joint-angle error from 5.2 to 3.3 degrees (10: 3.5, 1000: 3.8, the mean
+# pose's own bias); on the walking clip it flattened the legs (2D error 1.2 -> 2.1% of the height),
+# hence not the default.
+STILL_HOLD_POSE = 1.0
+
+
 def rest_pose(dtype=torch.float32, device=None) -> torch.Tensor:
     """The A-pose body_pose [69]."""
     p = torch.zeros(69, dtype=dtype, device=device)
@@ -106,6 +116,7 @@ class FitConfig:
     # error on the synthetic turn from 6.5 to 5.2 degrees and on the walking clip from 11.4 to 9.2
     # (docs/capture.md); 50 smooths walking legs away.
     smooth_pose: float = 5.0
+    hold_pose: float = 0.0  # body_pose's pull towards the clip's mean: 0, or STILL_HOLD_POSE (--still)
     point_spacing: float = 0.04  # metres between the surface points of the silhouette term
 
 
@@ -204,6 +215,11 @@ def limit_term(body_pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> t
     """Sum over joints of the squared excess past the limits, mean over frames; body_pose [T,69]."""
     excess = torch.relu(body_pose - hi) + torch.relu(lo - body_pose)
     return excess.pow(2).sum(1).mean()
+
+
+def hold_term(body_pose: torch.Tensor) -> torch.Tensor:
+    """Mean over frames of the squared distance of body_pose [T,69] from its mean over the frames."""
+    return (body_pose - body_pose.mean(0)).pow(2).sum(1).mean()
 
 
 def smooth_term(x: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
@@ -309,6 +325,8 @@ class _Problem:
             depth = points[..., 2:].detach().mean()
             terms["smooth"] = cfg.smooth * smooth_term(points / (scale * depth), obs.gaps) \
                 + cfg.smooth_pose * smooth_term(self.body_pose, obs.gaps)
+            if cfg.hold_pose:
+                terms["hold"] = cfg.hold_pose * hold_term(self.body_pose)
             if self.betas is not None:
                 terms["shape"] = cfg.shape_prior * self.betas.pow(2).sum()
         return terms

@@ -19,6 +19,7 @@ slowly on the spot in an A-pose (arms lowered, away from the body), 20-60 second
 examples:
   rmavatar capture me.mp4 --out data/me                      # a phone video, default camera
   rmavatar capture me.mov --out data/me --fov 65 --fps 10    # known field of view, 10 frames/s
+  rmavatar capture me.mp4 --out data/me --still              # a turn in a held A-pose
   rmavatar capture frames/ --out data/me --focal 1400 --size 1080
   rmavatar capture me.mp4 --out data/me --body smpl:models/smpl/SMPL_NEUTRAL.pkl
 then:
@@ -48,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="longer side of the frames written, in pixels (default: the video's)")
     parser.add_argument("--test-fraction", type=float, default=0.2, metavar="F",
                         help="the end of the clip held out as the test split (default 0.2)")
+    parser.add_argument("--still", action="store_true",
+                        help="the person holds one pose throughout (the recommended turn in an A-pose): every "
+                             "frame's pose is pulled towards the clip's mean, which removes most of the pose "
+                             "error; wrong for walking, dancing or gestures")
     parser.add_argument("--iters", type=int, default=None, metavar="N",
                         help="fitting iterations (default 400, after 100 to start)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
@@ -57,10 +62,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rmavatar.capture import CaptureConfig, capture
-    from rmavatar.capture.fit import FitConfig
+    from rmavatar.capture.fit import STILL_HOLD_POSE, FitConfig
     from rmavatar.utils import UserError
 
     fit = FitConfig()
+    if args.still:
+        fit.hold_pose = STILL_HOLD_POSE
     if args.iters is not None:
         if args.iters < 1:
             raise UserError(f"--iters must be >= 1, got {args.iters}")
