@@ -17,6 +17,7 @@ from rmavatar.body import SMPL_PARENTS, load_body_model
 from rmavatar.capture import fit as F
 from rmavatar.capture.detect import INSTALL_HINT, require_mediapipe
 from rmavatar.capture.frames import keep_frame, open_source, read_frames
+from rmavatar.capture.matte import guided_filter, refine_mask
 from rmavatar.capture.landmarks import (
     LANDMARKS,
     OFFSETS,
@@ -229,6 +230,49 @@ def test_fit_recovers_a_turning_body_and_holding_the_pose_removes_noise(anny):
     noisy = _held_turn(anny, noise=0.015)
     free, held = _fit_errors(anny, *noisy, hold=0.0), _fit_errors(anny, *noisy, hold=F.STILL_HOLD_POSE)
     assert held[1] < 0.7 * free[1] and held[2] < 0.3 * free[2], (free, held)
+
+
+def test_guided_filter_against_a_per_window_reference():
+    """Every window's linear model solved on its own (the frame mirrored at the borders), then averaged
+    over the windows covering each pixel, in float64 loops."""
+    rng = np.random.default_rng(3)
+    H, W, r, eps = 9, 11, 2, 1e-2
+    I, p = rng.random((H, W, 3)), rng.random((H, W))
+    Ip, pp = np.pad(I, ((r, r), (r, r), (0, 0)), mode="symmetric"), np.pad(p, r, mode="symmetric")
+    a, b = np.zeros((H, W, 3)), np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            wi, wp = Ip[y:y + 2 * r + 1, x:x + 2 * r + 1].reshape(-1, 3), pp[y:y + 2 * r + 1, x:x + 2 * r + 1].ravel()
+            mu = wi.mean(0)
+            sigma = (wi - mu).T @ (wi - mu) / len(wi)
+            a[y, x] = np.linalg.solve(sigma + eps * np.eye(3), ((wi - mu) * (wp - wp.mean())[:, None]).mean(0))
+            b[y, x] = wp.mean() - a[y, x] @ mu
+    ap, bp = np.pad(a, ((r, r), (r, r), (0, 0)), mode="symmetric"), np.pad(b, r, mode="symmetric")
+    ref = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            window = (slice(y, y + 2 * r + 1), slice(x, x + 2 * r + 1))
+            ref[y, x] = ap[window].mean((0, 1)) @ I[y, x] + bp[window].mean()
+    np.testing.assert_allclose(guided_filter(I, p, r, eps), ref, atol=1e-10)
+
+
+def test_refine_mask_snaps_a_soft_wide_mask_to_the_colour_edge():
+    """A mask like MediaPipe's (a pixel too wide, then blurred): the targets composited with it over
+    white or black come closer to those composited with the true mask."""
+    rng = np.random.default_rng(4)
+    H, W = 256, 192  # a window radius of 4 px
+    person = np.zeros((H, W), bool)
+    person[30:220, 60:130] = True
+    image = np.where(person[..., None], [200, 60, 40], [90, 140, 220]) + rng.normal(0, 4, (H, W, 3))
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    soft = ndimage.gaussian_filter(ndimage.binary_dilation(person).astype(np.float32), 1.5)
+    refined = refine_mask(image, soft)
+    assert refined.dtype == np.float32 and refined.min() >= 0 and refined.max() <= 1
+    for bg in (0.0, 255.0):
+        target = lambda m: image * m[..., None] + bg * (1 - m[..., None])  # noqa: E731
+        psnr = lambda m: -10 * np.log10((((target(m) - target(person.astype(float))) / 255) ** 2).mean())  # noqa: E731
+        # measured: 26.3 -> 30.2 dB over black, 28.6 -> 32.5 over white
+        assert psnr(refined) > psnr(soft) + 2.0, (bg, psnr(soft), psnr(refined))
 
 
 # --- camera, frames, flags ----------------------------------------------------------------------------

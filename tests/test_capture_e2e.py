@@ -97,6 +97,6 @@ def test_capture_then_train(captured, tmp_path):
     train(cfg, tmp_path / "run", progress=False)
     res = evaluate_run(tmp_path / "run", split="test", progress=False)
     # measured: 20.44 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps;
-    # 20.57 without --still, 21.0 before pose refinement existed; the default 30-step sweeps were not
-    # measured here)
+    # the same with MediaPipe's unrefined masks, 20.57 without --still, 21.0 before pose refinement
+    # existed; the default 30-step sweeps were not measured here)
     assert res["mean"]["psnr"] > 20.0, res["mean"]

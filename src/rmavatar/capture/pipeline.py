@@ -2,10 +2,11 @@
 dataset with estimated poses, ready for ``rmavatar train``.
 
 Steps: decode (and subsample, resize) the frames; MediaPipe finds the person's landmarks and mask in
-each; frames without a person, or with a second one, are dropped and reported; the body is fitted to
-all frames at once (:mod:`rmavatar.capture.fit`); the dataset is written atomically with a contact
-sheet of the fit. Any failure leaves nothing behind: frames wait in a temporary folder beside OUT,
-and OUT appears only when everything is written.
+each (the mask then snapped to the frame's colour edges, :mod:`rmavatar.capture.matte`); frames
+without a person, or with a second one, are dropped and reported; the body is fitted to all frames at
+once (:mod:`rmavatar.capture.fit`); the dataset is written atomically with a contact sheet of the fit.
+Any failure leaves nothing behind: frames wait in a temporary folder beside OUT, and OUT appears only
+when everything is written.
 """
 
 from __future__ import annotations
@@ -123,6 +124,7 @@ def _detect(source, cfg: CaptureConfig, scratch: Path, progress: bool) -> tuple[
 
     from rmavatar.capture.detect import Detector
     from rmavatar.capture.frames import output_size, read_frames
+    from rmavatar.capture.matte import refine_mask
     from rmavatar.data.dataset import target_size
     from rmavatar.data.io import resample, to_uint8, write_png
 
@@ -147,13 +149,14 @@ def _detect(source, cfg: CaptureConfig, scratch: Path, progress: bool) -> tuple[
                 clip.other_person.append(i)
                 continue
             n = len(clip.index)
+            mask = refine_mask(image, det.mask)
             write_png(scratch / f"image{n:06d}.png", image)
-            write_png(scratch / f"mask{n:06d}.png", to_uint8(det.mask, f"mask of frame {i}"))
+            write_png(scratch / f"mask{n:06d}.png", to_uint8(mask, f"mask of frame {i}"))
             clip.index.append(i)
             clip.keypoints.append(det.keypoints)
             clip.visibility.append(det.visibility)
             clip.world.append(det.world)
-            clip.small_masks.append(resample(det.mask, *small) > 0.5)
+            clip.small_masks.append(resample(mask, *small) > 0.5)
             clip.heights.append(float(rows[-1] - rows[0] + 1))
     return clip, size
 
