@@ -116,8 +116,8 @@ def main() -> None:
     fov = math.degrees(2 * math.atan(ds.image_size[0] / 2 / fx))
     result = {"fov": fov, "fit": {}, "seconds_per_frame": {}}
     clips = {"turn": ds.splits["train"] + ds.splits["test"], "novel": ds.splits["novel_pose"]}
-    captured = {"turn": work / ("captured_turn_free" if args.no_still else "captured_turn"),
-                "novel": work / "captured_novel"}
+    free = "_free" if args.no_still else ""  # the turn's capture and run without --still
+    captured = {"turn": work / f"captured_turn{free}", "novel": work / "captured_novel"}
     for name, frames in clips.items():
         video, out = work / f"{name}.mp4", captured[name]
         if not video.is_file():
@@ -132,10 +132,8 @@ def main() -> None:
     if not args.skip_training:
         result["avatar_true_poses"] = train_and_eval(truth, work / "run_true", truth, args.iters, args.size)
         refine = {"auto": None, "on": True, "off": False}[args.refine_poses]
-        run = work / ("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}")
+        run = work / (("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}") + free)
         result["refine_poses"] = args.refine_poses
-        if args.no_still:
-            run = run.with_name(run.name + "_free")
         result["avatar_captured"] = train_and_eval(captured["turn"], run, truth, args.iters, args.size, refine)
         print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured")}, indent=1))
     if args.json:

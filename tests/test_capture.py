@@ -13,11 +13,10 @@ import torch
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from rmavatar.body import SMPL_PARENTS, load_body_model
+from rmavatar.body import SMPL_PARENTS, PoseSequence, joint_angle_errors, load_body_model
 from rmavatar.capture import fit as F
 from rmavatar.capture.detect import INSTALL_HINT, require_mediapipe
 from rmavatar.capture.frames import keep_frame, open_source, read_frames
-from rmavatar.capture.matte import guided_filter, refine_mask
 from rmavatar.capture.landmarks import (
     LANDMARKS,
     OFFSETS,
@@ -25,6 +24,7 @@ from rmavatar.capture.landmarks import (
     body_landmarks,
     joint_rotations,
 )
+from rmavatar.capture.matte import guided_filter, refine_mask
 from rmavatar.capture.pipeline import CaptureConfig, capture, intrinsics
 from rmavatar.capture.proxy import BodyProxy
 from rmavatar.commands import main
@@ -176,7 +176,8 @@ def test_hold_term():
 def _held_turn(anny, noise: float, T: int = 8):
     """Observations of the anny body holding one pose while it turns in front of the camera: its
     landmarks projected exactly, plus Gaussian noise of ``noise`` (fraction of the height) per frame;
-    every landmark visible, the world landmarks exact, no mask (every point counts as inside)."""
+    every landmark visible, the world landmarks exact, no mask (every point counts as inside).
+    Returns the observations and the true joints [T,24,3] (camera frame)."""
     g = torch.Generator().manual_seed(7)
     pose = (F.rest_pose() + 0.1 * torch.randn(69, generator=g)).clamp(*F.limit_bounds())
     upright = Rotation.from_euler("x", 180, degrees=True)  # the body's y up is the camera's -y
@@ -194,31 +195,25 @@ def _held_turn(anny, noise: float, T: int = 8):
     obs = F.Observations(keypoints=uv, visibility=torch.ones(uv.shape[:2]), world=points - hips,
                          outside=torch.zeros(T, 8, 8), K=K, size=(256, 256), gaps=torch.ones(T - 1),
                          height_px=height)
-    return obs, pose, go
+    return obs, out.joints
 
 
-def _angle_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Geodesic angles (degrees) between axis-angle rotations a, b [...,3] (broadcast)."""
-    a, b = np.broadcast_arrays(a, b)
-    ra, rb = Rotation.from_rotvec(a.reshape(-1, 3)), Rotation.from_rotvec(b.reshape(-1, 3))
-    return np.degrees((ra.inv() * rb).magnitude()).reshape(a.shape[:-1])
-
-
-def _fit_errors(anny, obs, pose, go, hold: float) -> tuple[float, float, float]:
+def _fit_errors(anny, obs, true_joints, hold: float) -> tuple[float, float, float]:
     """Fit (the smoothness terms off: 8 frames far apart) and return the mean 2D joint error (% of the
-    height), the root-aligned 3D joint error (mm) and the spread of the fitted body_pose about its mean
-    (degrees)."""
+    height) and root-aligned 3D joint error (mm) against the true joints [T,24,3], and the spread of
+    the fitted body_pose about its mean (degrees)."""
     torch.manual_seed(0)
     cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0, hold_pose=hold)
     r = F.fit_body(anny, obs, cfg, progress=False)
-    T = len(go)
+    fitted = PoseSequence.from_arrays(r.global_orient, r.body_pose, r.transl)
     with torch.no_grad():
-        t = anny(None, go, pose.expand(T, 69), torch.tensor([0.0, 0.0, 3.5]).expand(T, 3))
-        f = anny(None, *(torch.tensor(x) for x in (r.global_orient, r.body_pose, r.transl)))
-    e2 = (F.project(t.joints, obs.K) - F.project(f.joints, obs.K)).norm(dim=-1) / obs.height_px * 100
-    e3 = ((t.joints - t.joints[:, :1]) - (f.joints - f.joints[:, :1])).norm(dim=-1) * 1000
-    bp = r.body_pose.reshape(T, 23, 3)
-    return float(e2.mean()), float(e3.mean()), float(_angle_error(bp, bp.mean(0, keepdims=True)).mean())
+        f = anny(None, fitted.global_orient, fitted.body_pose, fitted.transl).joints
+    t = true_joints
+    e2 = (F.project(t, obs.K) - F.project(f, obs.K)).norm(dim=-1) / obs.height_px * 100
+    e3 = ((t - t[:, :1]) - (f - f[:, :1])).norm(dim=-1) * 1000
+    mean = PoseSequence(fitted.global_orient, fitted.body_pose.mean(0).expand_as(fitted.body_pose), fitted.transl)
+    spread = joint_angle_errors(fitted, mean)[:, 1:]  # column 0 is the global orientation
+    return float(e2.mean()), float(e3.mean()), float(spread.mean())
 
 
 def test_fit_recovers_a_turning_body_and_holding_the_pose_removes_noise(anny):
