@@ -10,7 +10,8 @@ turn (train + test frames) and its novel motion into MP4s, captures both with th
 error (% of the body's height in the image) and root-aligned 3D joint error (mm) over the 24 joints.
 Unless --skip-training, it then trains one avatar on the true poses and one on the captured turn with
 the demo's config (--iters, max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's
-test and novel_pose splits (true poses, the run's own body). --refine-poses sets the captured-data
+test and novel_pose splits (true poses, the run's own body), and on test after fitting every frame's
+pose to its image (100 steps from the true poses). --refine-poses sets the captured-data
 run's ``optim.refine_poses`` (auto: on, as the captured dataset says its poses are estimated); its run
 is ``WORK/run_captured`` for auto and ``WORK/run_captured_refine_{on,off}`` otherwise (``_free``
 appended with --no-still). Everything goes under WORK; finished steps are reused.
@@ -72,6 +73,7 @@ def fit_errors(truth: Path, captured: Path, first: int) -> dict:
 
 def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None) -> dict:
     from rmavatar.evaluate import evaluate_run
+    from rmavatar.evaluate.fit import FitConfig
     from rmavatar.train import TrainConfig, train
 
     if not (run / "checkpoints" / "last.pt").is_file():
@@ -83,8 +85,8 @@ def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, re
         train(cfg, run, progress=True)
         print(f"trained {run} in {time.perf_counter() - t:.0f} s")
     out = {}
-    for split in ("test", "novel_pose"):
-        res = evaluate_run(run, data=str(truth), split=split, progress=False)
+    for split, fit in (("test", None), ("novel_pose", None), ("test_fitted", FitConfig(smooth=0))):
+        res = evaluate_run(run, data=str(truth), split=split.removesuffix("_fitted"), progress=False, fit=fit)
         out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
     return out
 
@@ -102,7 +104,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from rmavatar.capture import CaptureConfig, capture
-    from rmavatar.capture.fit import STILL_HOLD_POSE, FitConfig
+    from rmavatar.capture.fit import FitConfig
     from rmavatar.data import load_dataset
     from rmavatar.data.synth import SynthConfig, synthesize
 
@@ -124,8 +126,10 @@ def main() -> None:
             write_video(truth, video, frames, ds.fps or 7.5)
         if not (out / "meta.yaml").is_file():
             still = name == "turn" and not args.no_still
-            fit = FitConfig(hold_pose=STILL_HOLD_POSE if still else 0.0)
-            s = capture(video, out, CaptureConfig(fov=fov, fit=fit), progress=True)
+            fit = FitConfig().still() if still else FitConfig()
+            # the turn's test tail is the truth's test split, so that no test frame is trained on
+            test = len(ds.splits["test"]) / len(frames) if name == "turn" else 0.2
+            s = capture(video, out, CaptureConfig(fov=fov, fit=fit, test_fraction=test), progress=True)
             result["seconds_per_frame"][name] = s["seconds_per_frame"]
         result["fit"][name] = fit_errors(truth, out, frames[0])
     print(json.dumps(result, indent=1))

@@ -15,8 +15,9 @@ person's height in the image so that weights do not depend on the resolution:
 - limits: joint angles past anatomical limits (a box on each joint's axis-angle components);
 - prior: a weak pull of body_pose towards a relaxed A-pose, and of SMPL betas towards zero;
 - smooth: squared acceleration of the landmark points (body heights per frame^2) and of body_pose;
-- hold (off unless asked for, ``--still``): squared distance of each frame's body_pose from the clip's
-  mean, for a person who holds one pose while turning.
+- hold and up (off unless asked for, ``--still``): squared distance of each frame's body_pose, and of
+  its up direction (the pelvis' y axis in the camera frame), from the clip's mean, for a person who
+  holds one pose while turning on the spot.
 
 The global rotation is optimised as a residual on its initial value (R = R0 exp(d)), so a person
 seen upright (about 180 degrees from the camera's y-down axes) is no singularity.
@@ -24,7 +25,7 @@ seen upright (about 180 degrees from the camera's y-down axes) is no singularity
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -75,6 +76,11 @@ A_POSE_ELBOW = 0.15
 # pose's own bias); on the walking clip it flattened the legs (2D error 1.2 -> 2.1% of the height),
 # hence not the default.
 STILL_HOLD_POSE = 1.0
+# hold_up for the same recording: a person turning on the spot stays upright, so the pelvis' up axis
+# hardly moves in a static camera's frame, while MediaPipe's 3D landmarks tilt it by up to 8 degrees in
+# side views (depth, which the 2D landmarks cannot correct). 10 took the synthetic turn's global rotation
+# error from 4.7 to 3.8 degrees (1: 4.1, 100: 3.8; docs/capture.md).
+STILL_HOLD_UP = 10.0
 
 
 def rest_pose(dtype=torch.float32, device=None) -> torch.Tensor:
@@ -106,7 +112,10 @@ class FitConfig:
     min_visibility: float = 0.5  # landmarks at or below this visibility are ignored (see visibility_weight)
     keypoints: float = 1.0
     directions: float = 0.05
-    silhouette: float = 2.0
+    # 20 (was 2, before the masks were refined): the synthetic turn's global rotation error 3.8 -> 2.8
+    # degrees with --still, 2D joint error 0.75 -> 0.60 % of the height; walking 1.23 -> 1.16 %, 3D
+    # about the same; 50 made walking worse (docs/capture.md)
+    silhouette: float = 20.0
     limits: float = 10.0
     prior: float = 0.002
     shape_prior: float = 0.01
@@ -117,7 +126,12 @@ class FitConfig:
     # (docs/capture.md); 50 smooths walking legs away.
     smooth_pose: float = 5.0
     hold_pose: float = 0.0  # body_pose's pull towards the clip's mean: 0, or STILL_HOLD_POSE (--still)
+    hold_up: float = 0.0  # the pelvis' up axis' pull towards the clip's mean: 0, or STILL_HOLD_UP (--still)
     point_spacing: float = 0.04  # metres between the surface points of the silhouette term
+
+    def still(self) -> "FitConfig":
+        """A copy for a person who holds one pose while turning on the spot (``--still``)."""
+        return replace(self, hold_pose=STILL_HOLD_POSE, hold_up=STILL_HOLD_UP)
 
 
 @dataclass
@@ -217,9 +231,10 @@ def limit_term(body_pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> t
     return excess.pow(2).sum(1).mean()
 
 
-def hold_term(body_pose: torch.Tensor) -> torch.Tensor:
-    """Mean over frames of the squared distance of body_pose [T,69] from its mean over the frames."""
-    return (body_pose - body_pose.mean(0)).pow(2).sum(1).mean()
+def hold_term(x: torch.Tensor) -> torch.Tensor:
+    """Mean over frames of the squared distance of x [T,D] (body_pose, or a unit axis: radians squared
+    for small angles) from its mean over the frames."""
+    return (x - x.mean(0)).pow(2).sum(1).mean()
 
 
 def smooth_term(x: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
@@ -327,6 +342,8 @@ class _Problem:
                 + cfg.smooth_pose * smooth_term(self.body_pose, obs.gaps)
             if cfg.hold_pose:
                 terms["hold"] = cfg.hold_pose * hold_term(self.body_pose)
+            if cfg.hold_up:
+                terms["up"] = cfg.hold_up * hold_term(self.rotation()[:, :, 1])
             if self.betas is not None:
                 terms["shape"] = cfg.shape_prior * self.betas.pow(2).sum()
         return terms

@@ -50,9 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--test-fraction", type=float, default=0.2, metavar="F",
                         help="the end of the clip held out as the test split (default 0.2)")
     parser.add_argument("--still", action="store_true",
-                        help="the person holds one pose throughout (the recommended turn in an A-pose): every "
-                             "frame's pose is pulled towards the clip's mean, which removes most of the pose "
-                             "error; wrong for walking, dancing or gestures")
+                        help="the person holds one pose and turns on the spot (the recommended turn in an "
+                             "A-pose): every frame's pose and up direction are pulled towards the clip's mean, "
+                             "which removes most of the pose error; wrong for walking, dancing or gestures")
     parser.add_argument("--iters", type=int, default=None, metavar="N",
                         help="fitting iterations (default 400, after 100 to start)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
@@ -62,12 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rmavatar.capture import CaptureConfig, capture
-    from rmavatar.capture.fit import STILL_HOLD_POSE, FitConfig
+    from rmavatar.capture.fit import FitConfig
     from rmavatar.utils import UserError
 
-    fit = FitConfig()
-    if args.still:
-        fit.hold_pose = STILL_HOLD_POSE
+    fit = FitConfig().still() if args.still else FitConfig()
     if args.iters is not None:
         if args.iters < 1:
             raise UserError(f"--iters must be >= 1, got {args.iters}")
