@@ -322,7 +322,8 @@ class _Problem:
     def losses(self, full: bool) -> dict[str, torch.Tensor]:
         """The weighted terms (``full``: all of them, else keypoints, directions, limits, prior)."""
         cfg, obs = self.cfg, self.obs
-        go = matrix_to_axis_angle(self.rotation())
+        R = self.rotation()
+        go = matrix_to_axis_angle(R)
         joints, rotations, surface = self.proxy(self.betas, go, self.body_pose, self.transl)
         points = body_landmarks(joints, rotations)
         uv = project(points, obs.K)
@@ -343,7 +344,7 @@ class _Problem:
             if cfg.hold_pose:
                 terms["hold"] = cfg.hold_pose * hold_term(self.body_pose)
             if cfg.hold_up:
-                terms["up"] = cfg.hold_up * hold_term(self.rotation()[:, :, 1])
+                terms["up"] = cfg.hold_up * hold_term(R[:, :, 1])
             if self.betas is not None:
                 terms["shape"] = cfg.shape_prior * self.betas.pow(2).sum()
         return terms
