@@ -7,12 +7,15 @@ Makes the subject (`rmavatar synth`, default 100 train + 30 test + 30 novel-pose
 turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view
 (the turn, where the subject holds its A-pose, with ``--still``; with --no-still, without it, into
 ``WORK/captured_turn_free``), and reports the fitted body against the truth per split: mean 2D joint
-error (% of the body's height in the image) and root-aligned 3D joint error (mm) over the 24 joints.
+error (% of the body's height in the image), root-aligned 3D joint error (mm) over the 24 joints, and
+the mean 2D distance (px) of the body's vertices the true image shows from where the fitted body puts
+them (``visible_vertex_px``: what an avatar trained on the poses has to reconcile).
 Unless --skip-training, it then trains one avatar on the true poses and one on the captured turn with
 the demo's config (--iters, max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's
 test and novel_pose splits (true poses, the run's own body), and on test after fitting every frame's
-pose to its image (100 steps from the true poses). --refine-poses sets the captured-data
-run's ``optim.refine_poses`` (auto: on, as the captured dataset says its poses are estimated); its run
+pose to its image (100 steps from the true poses), and reports the same errors of the training poses
+the captured avatar was trained on (``training_poses``: its first pass's refined ones, and the
+refits'). --refine-poses sets the captured-data run's ``optim.refine_poses`` (auto: on, as the captured dataset says its poses are estimated); its run
 is ``WORK/run_captured`` for auto and ``WORK/run_captured_refine_{on,off}`` otherwise (``_free``
 appended with --no-still). Everything goes under WORK; finished steps are reused.
 """
@@ -40,15 +43,37 @@ def write_video(truth: Path, path: Path, frames: list[int], fps: float) -> None:
             write((read_image(truth / "images" / f"{i:05d}.png") * 255 + 0.5).astype(np.uint8))
 
 
-def fit_errors(truth: Path, captured: Path, first: int) -> dict:
+def visible_vertices(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, height: int,
+                     tolerance: float = 0.01) -> np.ndarray:
+    """Which camera-frame vertices [V,3] of a mesh the camera sees [V] bool: the vertex's pixel holds no
+    surface more than ``tolerance`` metres nearer (a z-buffer of the mesh itself, one sample per pixel)."""
+    from rmavatar.data.synth.raster import rasterize
+
+    depth = rasterize(vertices, faces, K, width, height, ss=1).depth
+    u = vertices[:, 0] / vertices[:, 2] * K[0, 0] + K[0, 2]
+    v = vertices[:, 1] / vertices[:, 2] * K[1, 1] + K[1, 2]
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    c, r = np.clip(u.astype(int), 0, width - 1), np.clip(v.astype(int), 0, height - 1)
+    return inside & (vertices[:, 2] <= depth[r, c] + tolerance)
+
+
+def fit_errors(truth: Path, captured: Path, first: int, poses: Path | None = None) -> dict:
     """Per split of the captured dataset: mean 2D joint error (% of height) and root-aligned 3D joint
-    error (mm) over the 24 joints; ``first`` is the synthetic frame the video started at."""
+    error (mm) over the 24 joints, and the mean 2D distance (px) of the body's vertices the true image
+    shows from where the fitted body puts them (what an avatar trained on the poses sees); ``first``
+    is the synthetic frame the video started at; ``poses``: a run's ``poses.npz`` (refined training
+    poses) replacing the fit's poses of its frames."""
     from rmavatar.body import load_body_model
 
     true = np.load(truth / "smpl_true.npz")
     cams = np.load(truth / "cameras.npz")
     meta = yaml.safe_load((captured / "meta.yaml").read_text())
-    fit = np.load(captured / "smpl.npz")
+    fit = dict(np.load(captured / "smpl.npz"))
+    if poses is not None:
+        with np.load(poses) as p:
+            for k in ("global_orient", "body_pose", "transl"):
+                fit[k] = fit[k].copy()
+                fit[k][p["index"]] = p[k]
     K = np.load(captured / "cameras.npz")["K"]
     src = np.load(captured / "capture.npz")["source_index"] + first
     tbody = load_body_model(yaml.safe_load((truth / "meta.yaml").read_text())["body"])
@@ -66,9 +91,21 @@ def fit_errors(truth: Path, captured: Path, first: int) -> dict:
     height = ys.max(1) - ys.min(1)
     e2 = np.linalg.norm(proj(jt, Kt) - proj(jf, np.broadcast_to(K, Kt.shape)), axis=-1) / height[:, None] * 100
     e3 = np.linalg.norm((jt - jt[:, :1]) - (jf - jf[:, :1]), axis=-1) * 1000
-    return {split: {"frames": len(idx), "joint_2d_percent_height": round(float(e2[idx].mean()), 3),
-                    "joint_3d_root_aligned_mm": round(float(e3[idx].mean()), 1)}
-            for split, idx in meta["splits"].items()}  # fmt: skip
+    ev = None
+    if tbody.faces.shape == fbody.faces.shape and bool((tbody.faces == fbody.faces).all()):
+        tmeta = yaml.safe_load((truth / "meta.yaml").read_text())
+        w, h = int(tmeta["width"]), int(tmeta["height"])
+        faces = tbody.faces.numpy()
+        seen = np.stack([visible_vertices(vt[n], faces, Kt[n], w, h) for n in range(len(src))])
+        d = np.linalg.norm(proj(vt, Kt) - proj(f.vertices.numpy(), np.broadcast_to(K, Kt.shape)), axis=-1)
+        ev = (d * seen).sum(1) / seen.sum(1).clip(1)
+    out = {}
+    for split, idx in meta["splits"].items():
+        out[split] = {"frames": len(idx), "joint_2d_percent_height": round(float(e2[idx].mean()), 3),
+                      "joint_3d_root_aligned_mm": round(float(e3[idx].mean()), 1)}
+        if ev is not None:
+            out[split]["visible_vertex_px"] = round(float(ev[idx].mean()), 3)
+    return out
 
 
 def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None) -> dict:
@@ -139,7 +176,13 @@ def main() -> None:
         run = work / (("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}") + free)
         result["refine_poses"] = args.refine_poses
         result["avatar_captured"] = train_and_eval(captured["turn"], run, truth, args.iters, args.size, refine)
-        print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured")}, indent=1))
+        # the poses the captured avatar trained on: the first pass's refined ones, and the refits' (if any)
+        for name, path in (("first_pass", run / "pose_pass" / "poses.npz"), ("trained_on", run / "poses.npz")):
+            if path.is_file():
+                result.setdefault("training_poses", {})[name] = fit_errors(truth, captured["turn"], clips["turn"][0],
+                                                                           path)["train"]
+        print(json.dumps({k: result[k] for k in ("avatar_true_poses", "avatar_captured", "training_poses") if k in result},
+                         indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
 
