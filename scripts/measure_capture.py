@@ -13,11 +13,13 @@ them (``visible_vertex_px``: what an avatar trained on the poses has to reconcil
 Unless --skip-training, it then trains one avatar on the true poses and one on the captured turn with
 the demo's config (--iters, max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's
 test and novel_pose splits (true poses, the run's own body), and on test after fitting every frame's
-pose to its image (100 steps from the true poses), and reports the same errors of the training poses
+pose to its image (100 steps from the true poses); both also on the same test images posed with the
+captured test poses, as given and fitted from them (``WORK/captured_turn_true_images``: the captured
+dataset with the truth's images and masks), and it reports the same errors of the training poses
 the captured avatar was trained on (``training_poses``: its first pass's refined ones, and the
-refits'). --refine-poses sets the captured-data run's ``optim.refine_poses`` (auto: on, as the captured dataset says its poses are estimated); its run
-is ``WORK/run_captured`` for auto and ``WORK/run_captured_refine_{on,off}`` otherwise (``_free``
-appended with --no-still). Everything goes under WORK; finished steps are reused.
+refits'). --refine-poses sets the captured-data run's ``optim.refine_poses`` (auto: on, as the
+captured dataset says its poses are estimated); its run is ``WORK/run_captured`` for auto and
+``WORK/run_captured_refine_{on,off}`` otherwise (``_free`` appended with --no-still). Everything goes under WORK; finished steps are reused.
 """
 
 from __future__ import annotations
@@ -108,7 +110,25 @@ def fit_errors(truth: Path, captured: Path, first: int, poses: Path | None = Non
     return out
 
 
-def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None) -> dict:
+def with_true_images(truth: Path, captured: Path, out: Path) -> Path:
+    """A copy of the captured dataset (its poses and camera) holding the truth's images and masks of the
+    same frames: the captured test poses on the true images, to score any avatar with them."""
+    import shutil
+
+    if (out / "meta.yaml").is_file():
+        return out
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(captured, tmp)
+    for i, s in enumerate(np.load(captured / "capture.npz")["source_index"]):
+        for folder in ("images", "masks"):
+            shutil.copyfile(truth / folder / f"{s:05d}.png", tmp / folder / f"{i:05d}.png")
+    tmp.rename(out)
+    return out
+
+
+def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None,
+                   captured_poses: Path | None = None) -> dict:
     from rmavatar.evaluate import evaluate_run
     from rmavatar.evaluate.fit import FitConfig
     from rmavatar.train import TrainConfig, train
@@ -125,6 +145,10 @@ def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, re
     for split, fit in (("test", None), ("novel_pose", None), ("test_fitted", FitConfig(smooth=0))):
         res = evaluate_run(run, data=str(truth), split=split.removesuffix("_fitted"), progress=False, fit=fit)
         out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
+    if captured_poses is not None:  # the same test images, posed and fitted from the captured test poses
+        for split, fit in (("test_captured_poses", None), ("test_fitted_from_captured", FitConfig(smooth=0))):
+            res = evaluate_run(run, data=str(captured_poses), split="test", progress=False, fit=fit)
+            out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
     return out
 
 
@@ -171,11 +195,14 @@ def main() -> None:
         result["fit"][name] = fit_errors(truth, out, frames[0])
     print(json.dumps(result, indent=1))
     if not args.skip_training:
-        result["avatar_true_poses"] = train_and_eval(truth, work / "run_true", truth, args.iters, args.size)
+        hybrid = with_true_images(truth, captured["turn"], work / f"captured_turn{free}_true_images")
+        result["avatar_true_poses"] = train_and_eval(truth, work / "run_true", truth, args.iters, args.size,
+                                                     captured_poses=hybrid)
         refine = {"auto": None, "on": True, "off": False}[args.refine_poses]
         run = work / (("run_captured" if refine is None else f"run_captured_refine_{args.refine_poses}") + free)
         result["refine_poses"] = args.refine_poses
-        result["avatar_captured"] = train_and_eval(captured["turn"], run, truth, args.iters, args.size, refine)
+        result["avatar_captured"] = train_and_eval(captured["turn"], run, truth, args.iters, args.size, refine,
+                                                   captured_poses=hybrid)
         # the poses the captured avatar trained on: the first pass's refined ones, and the refits' (if any)
         for name, path in (("first_pass", run / "pose_pass" / "poses.npz"), ("trained_on", run / "poses.npz")):
             if path.is_file():
