@@ -115,6 +115,44 @@ def test_silhouette_distance_sampling_against_brute_force():
     assert float(F.silhouette_term(far, maps, (2 * W, 2 * H), 40.0, 0.05)) > 0.5
 
 
+def test_mask_outline_and_outline_term_against_dense_references():
+    H, W = 10, 12
+    mask = np.zeros((H, W), bool)
+    mask[2:8, 3:9] = True  # a 6 x 6 square: 20 outline pixels
+    edge = np.zeros((H, W), bool)
+    edge[0:4, 0:5] = True  # cut by the image's top and left border: those sides are no outline
+    points, weights = F.mask_outline([mask, edge], scale=2.0, count=1000)
+    assert points.shape == (2, 20, 2) and weights[0].sum() == 20 and weights[1].sum() == 8
+    ring = {(x, y) for y in range(2, 8) for x in range(3, 9) if y in (2, 7) or x in (3, 8)}
+    assert {(int(x / 2 - 0.5), int(y / 2 - 0.5)) for x, y in points[0]} == ring
+    cut = {(x, y) for y in range(4) for x in range(5) if y == 3 or x == 4}
+    assert {(int(x / 2 - 0.5), int(y / 2 - 0.5)) for x, y in points[1, :8]} == cut
+    assert F.mask_outline([mask], 1.0, count=5)[1].sum() == 5  # every 4th of the 20
+
+    # the term: each outline pixel's distance to its nearest point, in float64 loops
+    g = torch.Generator().manual_seed(4)
+    uv, outline = 20 * torch.rand(2, 7, 2, generator=g), 20 * torch.rand(2, 5, 2, generator=g)
+    weight = torch.ones(2, 5)
+    weight[1, 3:] = 0.0  # padding
+    nearest = F.nearest_points(outline, uv)
+    height, sigma = 50.0, 0.05
+    ref = []
+    for t in range(2):
+        rho = []
+        for b in range(int(weight[t].sum())):
+            d2 = min(float(((outline[t, b] - uv[t, p]).double() ** 2).sum()) for p in range(7)) / height**2
+            rho.append(d2 / (d2 + sigma**2))
+        ref.append(np.mean(rho))
+    got = F.outline_term(uv, outline, weight, nearest, height, sigma)
+    assert float(got) == pytest.approx(np.mean(ref), rel=1e-5)
+    uv.requires_grad_(True)
+    F.outline_term(uv, outline, weight, nearest, height, sigma).backward()
+    drawn = torch.zeros(2, 7, dtype=torch.bool)
+    for t in range(2):
+        drawn[t, nearest[t, : int(weight[t].sum())]] = True
+    assert bool((uv.grad.abs().sum(-1) > 0).eq(drawn).all())  # only the nearest points are pulled
+
+
 def test_limit_and_smooth_terms():
     lo, hi = F.limit_bounds(torch.float64)
     pose = torch.zeros(2, 69, dtype=torch.float64)
@@ -173,11 +211,12 @@ def test_hold_term():
     assert float(F.hold_term(pose)) == pytest.approx(((0.2 - m) ** 2 + (0.1 + m) ** 2 + m**2) / 3)
 
 
-def _held_turn(anny, noise: float, T: int = 8):
+def _held_turn(anny, noise: float, T: int = 8, masks: bool = False):
     """Observations of the anny body holding one pose while it turns in front of the camera: its
     landmarks projected exactly, plus Gaussian noise of ``noise`` (fraction of the height) per frame;
-    every landmark visible, the world landmarks exact, no mask (every point counts as inside).
-    Returns the observations and the true joints [T,24,3] (camera frame)."""
+    every landmark visible, the world landmarks exact; no mask (every point counts as inside), or
+    with ``masks`` the body's own (rasterized). Returns the observations and the true joints [T,24,3]
+    (camera frame)."""
     g = torch.Generator().manual_seed(7)
     pose = (F.rest_pose() + 0.1 * torch.randn(69, generator=g)).clamp(*F.limit_bounds())
     upright = Rotation.from_euler("x", 180, degrees=True)  # the body's y up is the camera's -y
@@ -195,16 +234,23 @@ def _held_turn(anny, noise: float, T: int = 8):
     obs = F.Observations(keypoints=uv, visibility=torch.ones(uv.shape[:2]), world=points - hips,
                          outside=torch.zeros(T, 8, 8), K=K, size=(256, 256), gaps=torch.ones(T - 1),
                          height_px=height)
+    if masks:
+        from rmavatar.data.synth.raster import rasterize
+
+        seen = [rasterize(v.numpy(), anny.faces.numpy(), K.numpy(), 256, 256, ss=1).face_id >= 0 for v in out.vertices]
+        obs.outside = torch.tensor(np.stack([ndimage.distance_transform_edt(~m) for m in seen]), dtype=torch.float32)
+        obs.outline, obs.outline_weight = (torch.as_tensor(a) for a in F.mask_outline(seen, 1.0))
     return obs, out.joints
 
 
-def _fit_errors(anny, obs, true_joints, still: bool) -> tuple[float, float, float, float]:
-    """Fit (the smoothness terms off: 8 frames far apart; ``still``: FitConfig.still()) and return the
+def _fit_errors(anny, obs, true_joints, still: bool, outline: float = 1.0) -> tuple[float, float, float, float]:
+    """Fit (the smoothness terms off: 8 frames far apart; ``still``: FitConfig.still(); ``outline``
+    the outline term's weight) and return the
     mean 2D joint error (% of the height) and root-aligned 3D joint error (mm) against the true joints
     [T,24,3], the spread of the fitted body_pose about its mean and of the pelvis' up axis about its
     mean (degrees)."""
     torch.manual_seed(0)
-    cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0)
+    cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0, outline=outline)
     r = F.fit_body(anny, obs, cfg.still() if still else cfg, progress=False)
     fitted = PoseSequence.from_arrays(r.global_orient, r.body_pose, r.transl)
     with torch.no_grad():
@@ -230,6 +276,14 @@ def test_fit_recovers_a_turning_body_and_holding_the_pose_removes_noise(anny):
     noisy = _held_turn(anny, noise=0.015)
     free, held = _fit_errors(anny, *noisy, still=False), _fit_errors(anny, *noisy, still=True)
     assert held[1] < 0.7 * free[1] and held[2] < 0.3 * free[2] and held[3] < 0.3 * free[3], (free, held)
+
+
+def test_the_mask_outline_corrects_noisy_landmarks(anny):
+    # landmarks 1.5 % of the height off at random, the body's own masks: with the outline term as well
+    # as the silhouette's, measured 2D 0.89 -> 0.67 % of the height, 3D 40.5 -> 36.3 mm
+    obs, joints = _held_turn(anny, noise=0.015, masks=True)
+    without, with_outline = _fit_errors(anny, obs, joints, False, outline=0.0), _fit_errors(anny, obs, joints, False)
+    assert with_outline[0] < 0.8 * without[0] and with_outline[1] < without[1], (without, with_outline)
 
 
 def test_guided_filter_against_a_per_window_reference():

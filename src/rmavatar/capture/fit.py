@@ -11,7 +11,10 @@ person's height in the image so that weights do not depend on the resolution:
 - directions: the body's 3D bone directions against those of MediaPipe's world landmarks (resolves
   what 2D cannot: which way a limb points in depth), weighted by the smaller weight of its two ends;
 - silhouette: surface points of the body that project outside the person mask, by their squared
-  distance to the mask (the body must lie inside the clothed silhouette; the converse would inflate it);
+  distance to the mask (the body must lie inside the clothed silhouette);
+- outline: the mask's outline pixels by their distance to the nearest projected surface point, robust
+  (the converse of the silhouette term: a limb may not slide inside a wider mask; loose clothes and
+  hair, whose outline lies far from the body, saturate the robust cost instead of inflating the body);
 - limits: joint angles past anatomical limits (a box on each joint's axis-angle components);
 - prior: a weak pull of body_pose towards a relaxed A-pose, and of SMPL betas towards zero;
 - smooth: squared acceleration of the landmark points (body heights per frame^2) and of body_pose;
@@ -116,6 +119,12 @@ class FitConfig:
     # degrees with --still, 2D joint error 0.75 -> 0.60 % of the height; walking 1.23 -> 1.16 %, 3D
     # about the same; 50 made walking worse (docs/capture.md)
     silhouette: float = 20.0
+    # the mask's outline pixels drawn to the body's projected surface (0: off). 1 took the synthetic
+    # turn's visible-vertex error from 1.30 to 0.98 px and its 3D joint error from 19.5 to 14.8 mm
+    # (--still); on the walking clip 2D 1.16 -> 0.98 % of the height (docs/capture.md)
+    outline: float = 1.0
+    outline_sigma: float = 0.01  # its Geman-McClure scale, fraction of the person's height
+    outline_every: int = 10  # iterations between searches for each outline pixel's nearest point
     limits: float = 10.0
     prior: float = 0.002
     shape_prior: float = 0.01
@@ -142,7 +151,9 @@ class Observations:
     metres); outside [T,h,w] distance (pixels of the full image) from each pixel to the person mask
     at a reduced resolution; K [3,3] the camera; size (width, height) of the full image;
     gaps [T-1] source-frame distance between consecutive kept frames; height_px the person's height
-    in the image (pixels), the unit of every residual.
+    in the image (pixels), the unit of every residual; outline [T,B,2] pixels on the mask's outline
+    (padded) and outline_weight [T,B] (1 for a pixel, 0 for padding), or None: no outline term
+    (:func:`mask_outline` makes them).
     """
 
     keypoints: torch.Tensor
@@ -153,6 +164,8 @@ class Observations:
     size: tuple[int, int]
     gaps: torch.Tensor
     height_px: float
+    outline: torch.Tensor | None = None
+    outline_weight: torch.Tensor | None = None
 
 
 @dataclass
@@ -223,6 +236,40 @@ def silhouette_term(uv: torch.Tensor, outside: torch.Tensor, size: tuple[int, in
     points uv [T,P,2] to the person mask (``outside`` distance maps [T,h,w], pixels)."""
     d = sample_map(outside, uv, size) / height_px
     return geman_mcclure(d * d, sigma).mean()
+
+
+def outline_term(uv: torch.Tensor, outline: torch.Tensor, weight: torch.Tensor, nearest: torch.Tensor,
+                 height_px: float, sigma: float) -> torch.Tensor:
+    """Mean over frames of the weighted mean Geman-McClure of the distance (fraction of height) from
+    each outline pixel outline [T,B,2] to its nearest projected surface point uv [T,P,2]; ``nearest``
+    [T,B] the index of that point (:func:`nearest_points`, found now or a few iterations ago: the
+    correspondences change slowly, and the search is most of the term's cost), weight [T,B]."""
+    q = torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
+    rho = geman_mcclure(((q - outline) / height_px).pow(2).sum(-1), sigma)
+    return ((weight * rho).sum(1) / weight.sum(1).clamp_min(1e-6)).mean()
+
+
+def nearest_points(outline: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Index [T,B] of the point of uv [T,P,2] nearest to each of outline [T,B,2]."""
+    with torch.no_grad():
+        return torch.cdist(outline, uv.detach()).argmin(-1)
+
+
+def mask_outline(masks: list[np.ndarray], scale: float, count: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """The outline of each boolean mask [h,w] (its pixels with a 4-neighbour outside it), at most about
+    ``count`` of them evenly along the raster order, as full-image pixel centres (``scale`` full-image
+    pixels per mask pixel): points [T,B,2] (x, y) padded with zeros, and weights [T,B] (0 on padding)."""
+    from scipy import ndimage
+
+    picked = []
+    for m in masks:
+        yx = np.argwhere(m & ~ndimage.binary_erosion(m, border_value=1))
+        picked.append((yx[:: max(1, len(yx) // count)][:, ::-1] + 0.5) * scale)
+    B = max(1, max(len(p) for p in picked))
+    points, weights = np.zeros((len(masks), B, 2), np.float32), np.zeros((len(masks), B), np.float32)
+    for i, p in enumerate(picked):
+        points[i, : len(p)], weights[i, : len(p)] = p, 1.0
+    return points, weights
 
 
 def limit_term(body_pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
@@ -312,6 +359,7 @@ class _Problem:
         self.lo, self.hi = limit_bounds(device=dev)
         self.weights = visibility_weight(obs.visibility, cfg.min_visibility)
         self.mean_pose = rest_pose(device=dev)
+        self.iteration, self.nearest = 0, None
 
     def global_orient(self) -> torch.Tensor:
         return matrix_to_axis_angle(self.rotation())
@@ -338,6 +386,12 @@ class _Problem:
             surf = project(surface, obs.K)
             terms["silhouette"] = cfg.silhouette * silhouette_term(surf, obs.outside, obs.size, obs.height_px,
                                                                    cfg.sigma)
+            if cfg.outline and obs.outline is not None:
+                if self.nearest is None or self.iteration % max(cfg.outline_every, 1) == 0:
+                    self.nearest = nearest_points(obs.outline, surf)
+                self.iteration += 1
+                terms["outline"] = cfg.outline * outline_term(surf, obs.outline, obs.outline_weight, self.nearest,
+                                                              obs.height_px, cfg.outline_sigma)
             depth = points[..., 2:].detach().mean()
             terms["smooth"] = cfg.smooth * smooth_term(points / (scale * depth), obs.gaps) \
                 + cfg.smooth_pose * smooth_term(self.body_pose, obs.gaps)

@@ -180,7 +180,7 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     import torch
     from scipy import ndimage
 
-    from rmavatar.capture.fit import Observations
+    from rmavatar.capture.fit import Observations, mask_outline
     from rmavatar.capture.landmarks import USED
 
     used = list(USED)
@@ -191,10 +191,12 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
                         for m in clip.small_masks]).astype(np.float32)  # fmt: skip
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     index = np.asarray(clip.index)
+    outline, outline_weight = mask_outline(clip.small_masks, px)
     return Observations(
         keypoints=t(np.stack(clip.keypoints)[:, used]), visibility=t(np.stack(clip.visibility)[:, used]),
         world=t(np.stack(clip.world)[:, used]), outside=t(outside), K=t(K), size=size,
         gaps=t(np.diff(index).astype(np.float32)), height_px=float(np.median(clip.heights)),
+        outline=t(outline), outline_weight=t(outline_weight),
     )
 
 
