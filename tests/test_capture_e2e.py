@@ -82,8 +82,9 @@ def test_capture_then_train(captured, tmp_path):
     assert (out / "contact_sheet.png").is_file()
     assert main(["inspect", str(out)]) == 0
     e2, e3 = fitted_vs_true(truth, out)
-    # measured: 0.72 % and 24 mm (1.02 % and 33 mm before --still held the up axis and the silhouette
-    # weighed 20; 1.03 % and 35 mm without --still; MediaPipe's own landmarks are 1.1 % off at the median)
+    # measured: 0.62 % and 21 mm (0.72 % and 24 mm before the outline term; 1.02 % and 33 mm before
+    # --still held the up axis and the silhouette weighed 20; 1.03 % and 35 mm without --still;
+    # MediaPipe's own landmarks are 1.1 % off at the median)
     assert e2 < 1.6 and e3 < 75, (e2, e3)
 
     cfg = TrainConfig()
@@ -97,7 +98,8 @@ def test_capture_then_train(captured, tmp_path):
     cfg.device = "cpu"
     train(cfg, tmp_path / "run", progress=False)
     res = evaluate_run(tmp_path / "run", split="test", progress=False)
-    # measured: 21.29 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps;
-    # 20.44 before --still held the up axis and the silhouette weighed 20, 20.57 without --still, 21.0
-    # before pose refinement existed; the default 30-step sweeps were not measured here)
+    # measured: 21.55 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps;
+    # 21.29 before the capture's outline term, 20.44 before --still held the up axis and the silhouette
+    # weighed 20, 20.57 without --still, 21.0 before pose refinement existed; the default 30-step sweeps
+    # were not measured here)
     assert res["mean"]["psnr"] > 20.0, res["mean"]
