@@ -245,10 +245,9 @@ def _held_turn(anny, noise: float, T: int = 8, masks: bool = False):
 
 def _fit_errors(anny, obs, true_joints, still: bool, outline: float = 1.0) -> tuple[float, float, float, float]:
     """Fit (the smoothness terms off: 8 frames far apart; ``still``: FitConfig.still(); ``outline``
-    the outline term's weight) and return the
-    mean 2D joint error (% of the height) and root-aligned 3D joint error (mm) against the true joints
-    [T,24,3], the spread of the fitted body_pose about its mean and of the pelvis' up axis about its
-    mean (degrees)."""
+    the outline term's weight) and return the mean 2D joint error (% of the height) and root-aligned
+    3D joint error (mm) against the true joints [T,24,3], the spread of the fitted body_pose about its
+    mean and of the pelvis' up axis about its mean (degrees)."""
     torch.manual_seed(0)
     cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0, outline=outline)
     r = F.fit_body(anny, obs, cfg.still() if still else cfg, progress=False)

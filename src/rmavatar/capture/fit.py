@@ -252,7 +252,7 @@ def outline_term(uv: torch.Tensor, outline: torch.Tensor, weight: torch.Tensor, 
 def nearest_points(outline: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Index [T,B] of the point of uv [T,P,2] nearest to each of outline [T,B,2]."""
     with torch.no_grad():
-        return torch.cdist(outline, uv.detach()).argmin(-1)
+        return torch.cdist(outline, uv).argmin(-1)
 
 
 def mask_outline(masks: list[np.ndarray], scale: float, count: int = 400) -> tuple[np.ndarray, np.ndarray]:
@@ -359,7 +359,7 @@ class _Problem:
         self.lo, self.hi = limit_bounds(device=dev)
         self.weights = visibility_weight(obs.visibility, cfg.min_visibility)
         self.mean_pose = rest_pose(device=dev)
-        self.iteration, self.nearest = 0, None
+        self.nearest = None  # the outline term's correspondences, searched every cfg.outline_every steps
 
     def global_orient(self) -> torch.Tensor:
         return matrix_to_axis_angle(self.rotation())
@@ -367,8 +367,9 @@ class _Problem:
     def rotation(self) -> torch.Tensor:
         return self.R0 @ axis_angle_to_matrix(self.d_orient)
 
-    def losses(self, full: bool) -> dict[str, torch.Tensor]:
-        """The weighted terms (``full``: all of them, else keypoints, directions, limits, prior)."""
+    def losses(self, full: bool, step: int) -> dict[str, torch.Tensor]:
+        """The weighted terms (``full``: all of them, else keypoints, directions, limits, prior) at
+        iteration ``step`` of a run."""
         cfg, obs = self.cfg, self.obs
         R = self.rotation()
         go = matrix_to_axis_angle(R)
@@ -387,9 +388,8 @@ class _Problem:
             terms["silhouette"] = cfg.silhouette * silhouette_term(surf, obs.outside, obs.size, obs.height_px,
                                                                    cfg.sigma)
             if cfg.outline and obs.outline is not None:
-                if self.nearest is None or self.iteration % max(cfg.outline_every, 1) == 0:
+                if self.nearest is None or step % max(cfg.outline_every, 1) == 0:
                     self.nearest = nearest_points(obs.outline, surf)
-                self.iteration += 1
                 terms["outline"] = cfg.outline * outline_term(surf, obs.outline, obs.outline_weight, self.nearest,
                                                               obs.height_px, cfg.outline_sigma)
             depth = points[..., 2:].detach().mean()
@@ -407,9 +407,9 @@ class _Problem:
         opt = torch.optim.Adam(params, lr=self.cfg.lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(iters, 1), eta_min=self.cfg.lr * 0.05)
         terms = {}
-        for _ in range(iters):
+        for step in range(iters):
             opt.zero_grad(set_to_none=True)
-            terms = self.losses(full)
+            terms = self.losses(full, step)
             total = sum(terms.values())
             total.backward()
             opt.step()
