@@ -17,7 +17,8 @@ person's height in the image so that weights do not depend on the resolution:
   hair, whose outline lies far from the body, saturate the robust cost instead of inflating the body);
 - limits: joint angles past anatomical limits (a box on each joint's axis-angle components);
 - prior: a weak pull of body_pose towards a relaxed A-pose, and of SMPL betas towards zero;
-- smooth: squared acceleration of the landmark points (body heights per frame^2) and of body_pose;
+- smooth: acceleration of the landmark points (body heights per frame^2; robust, squared with --still)
+  and squared acceleration of body_pose;
 - hold and up (off unless asked for, ``--still``): squared distance of each frame's body_pose, and of
   its up direction (the pelvis' y axis in the camera frame), from the clip's mean, for a person who
   holds one pose while turning on the spot.
@@ -129,6 +130,14 @@ class FitConfig:
     prior: float = 0.002
     shape_prior: float = 0.01
     smooth: float = 10.0  # landmark points' acceleration (person heights per frame^2)
+    # Geman-McClure scale of each landmark's acceleration (person heights per frame^2; 0: squared, as in
+    # --still). Squared, a walking clip's fast swings of the legs cost so much that the fit gave up the
+    # keypoints for them: the first frame's legs collapsed onto each other (1.43 % of the height, 57 mm).
+    # At 0.02 the walking clips of three synthetic subjects (seeds 0, 3, 4; first 24 frames) went from
+    # 0.98 / 0.98 / 1.01 % of the height to 0.78 / 0.74 / 0.75 and from 59.5 / 55.5 / 58.4 mm to 56.6 /
+    # 53.0 / 56.6 (their last 6 frames, arms raised: images better, 3D 0-5 mm worse); 0.01 gained less
+    # in 3D, 0.04 and 0.08 less in 2D (docs/capture.md).
+    smooth_sigma: float = 0.02
     # body_pose's acceleration (rad per frame^2). MediaPipe's evidence for the feet, hands and head is
     # weak and its errors wander with the facing angle; 5 (was 0.05) cut the fitted body's joint-angle
     # error on the synthetic turn from 6.5 to 5.2 degrees and on the walking clip from 11.4 to 9.2
@@ -139,8 +148,11 @@ class FitConfig:
     point_spacing: float = 0.04  # metres between the surface points of the silhouette term
 
     def still(self) -> "FitConfig":
-        """A copy for a person who holds one pose while turning on the spot (``--still``)."""
-        return replace(self, hold_pose=STILL_HOLD_POSE, hold_up=STILL_HOLD_UP)
+        """A copy for a person who holds one pose while turning on the spot (``--still``). Nothing of a
+        held pose moves fast, so a large acceleration is MediaPipe's error, and the smoothness stays
+        squared to suppress it (the synthetic turn's test frames: 0.90 px of visible-vertex error
+        squared, 0.93 robust)."""
+        return replace(self, hold_pose=STILL_HOLD_POSE, hold_up=STILL_HOLD_UP, smooth_sigma=0.0)
 
 
 @dataclass
@@ -284,14 +296,20 @@ def hold_term(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean(0)).pow(2).sum(1).mean()
 
 
-def smooth_term(x: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
-    """Mean squared acceleration per source frame of x [T,...] with ``gaps`` [T-1] frames between rows
-    (the change of velocity, so turning or walking at a steady speed costs nothing)."""
+def smooth_term(x: torch.Tensor, gaps: torch.Tensor, sigma: float = 0.0) -> torch.Tensor:
+    """Mean over frames of the squared acceleration per source frame of the points x [T,...,D] (the
+    change of velocity, so turning or walking at a steady speed costs nothing), summed over the points,
+    with ``gaps`` [T-1] frames between rows. ``sigma`` > 0: each point's squared acceleration r^2 costs
+    sigma^2 rho(r) (Geman-McClure: r^2 while small, at most sigma^2), so that a fast true motion is not
+    smoothed away."""
     if x.shape[0] < 3:
         return x.new_zeros(())
-    v = (x[1:] - x[:-1]).reshape(x.shape[0] - 1, -1) / gaps[:, None]
-    a = (v[1:] - v[:-1]) / (0.5 * (gaps[1:] + gaps[:-1]))[:, None]
-    return a.pow(2).sum(1).mean()
+    g = gaps.reshape(-1, *[1] * (x.dim() - 1))
+    v = (x[1:] - x[:-1]) / g
+    r2 = ((v[1:] - v[:-1]) / (0.5 * (g[1:] + g[:-1]))).pow(2).sum(-1)
+    if sigma > 0:
+        r2 = sigma * sigma * geman_mcclure(r2, sigma)
+    return r2.reshape(r2.shape[0], -1).sum(1).mean()
 
 
 # --- initialisation ------------------------------------------------------------------------------
@@ -393,7 +411,7 @@ class _Problem:
                 terms["outline"] = cfg.outline * outline_term(surf, obs.outline, obs.outline_weight, self.nearest,
                                                               obs.height_px, cfg.outline_sigma)
             depth = points[..., 2:].detach().mean()
-            terms["smooth"] = cfg.smooth * smooth_term(points / (scale * depth), obs.gaps) \
+            terms["smooth"] = cfg.smooth * smooth_term(points / (scale * depth), obs.gaps, cfg.smooth_sigma) \
                 + cfg.smooth_pose * smooth_term(self.body_pose, obs.gaps)
             if cfg.hold_pose:
                 terms["hold"] = cfg.hold_pose * hold_term(self.body_pose)
