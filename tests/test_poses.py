@@ -123,6 +123,10 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
             OptimConfig(pose_refit_lr=bad).validate()
     with pytest.raises(UserError, match="pose_sweep_steps"):
         OptimConfig(pose_sweep_steps=0).validate()
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(UserError, match="pose_fit_mask"):
+            OptimConfig(pose_fit_mask=bad).validate()
+    OptimConfig(pose_fit_mask=0.0).validate()
     for bad in (-0.1, 1.5, True, "half"):
         with pytest.raises(UserError, match="pose_pass"):
             OptimConfig(pose_pass=bad).validate()

@@ -295,7 +295,8 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
                                                                                         monkeypatch):
     """optim.pose_refits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
     5 is an opacity reset in a run this short, so one earlier) the avatar being trained fits every held
-    pose again, at optim.pose_refit_lr for optim.pose_refit_steps; the refitted poses render
+    pose again, at optim.pose_refit_lr for optim.pose_refit_steps (both fits weigh the mask by
+    optim.pose_fit_mask); the refitted poses render
     the frames closer to their images, the held bodies and face tables are posed again from them, and
     RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
     bit-identical."""
@@ -307,6 +308,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     cfg.optim.pose_refit_lr = 4e-3
     cfg.optim.pose_sweep_steps = 10
     cfg.optim.pose_refit_steps = 7
+    cfg.optim.pose_fit_mask = 2.0
     seen, rates = [], []
     original, original_fit = Trainer.sweep_poses, fit_module.fit_poses
 
@@ -321,7 +323,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
             seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
 
     def fit(*args, **kwargs):
-        rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps))
+        rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps, args[6].silhouette))
         return original_fit(*args, **kwargs)
 
     monkeypatch.setattr(fit_module, "fit_poses", fit)
@@ -329,7 +331,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     whole = tmp_path / "whole"
     train(cfg, whole, progress=False)
     assert [s[0] for s in seen] == [4]
-    assert rates == [(2e-2, 5e-4, 10), (4e-3, 1e-4, 7)]  # the first pass's sweep, then the refit
+    assert rates == [(2e-2, 5e-4, 10, 2.0), (4e-3, 1e-4, 7, 2.0)]  # the first pass's sweep, then the refit
     _, before, after, err_before, err_after = seen[0]
     print("refit: image error", err_before, "->", err_after)
     assert err_after < err_before

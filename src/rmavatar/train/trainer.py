@@ -636,9 +636,9 @@ class Trainer:
 
     def sweep_poses(self) -> None:
         """A pose sweep (``optim.pose_sweeps``; in the second pass, a refit, ``optim.pose_refits``): every
-        training frame's corrected pose fitted to its image and mask with the avatar held still
-        (:func:`rmavatar.evaluate.fit.fit_poses`, ``optim.pose_sweep_steps`` steps; a refit
-        ``optim.pose_refit_steps``), then made the frame's
+        training frame's corrected pose fitted to its image and mask (weighed ``optim.pose_fit_mask``) with
+        the avatar held still (:func:`rmavatar.evaluate.fit.fit_poses`, ``optim.pose_sweep_steps`` steps;
+        a refit ``optim.pose_refit_steps``), then made the frame's
         new corrected pose; held poses are posed again."""
         from rmavatar.evaluate.fit import FitConfig, fit_poses
 
@@ -651,7 +651,7 @@ class Trainer:
             what = "pose refit" if self.poses.frozen else "pose sweep"
             print(f"{what} after iteration {self.iteration}: fitting the {n} training poses "
                   f"({steps} steps each)", flush=True)
-        fit = FitConfig(steps=steps)
+        fit = FitConfig(steps=steps, silhouette=optim.pose_fit_mask)
         if self.poses.frozen:
             fit.lr_rotation, fit.lr_translation = optim.pose_refit_lr, optim.pose_refit_lr / 40
         fitted = fit_poses(self.avatar, self.body, self.poses.poses(), self.poses.betas,
