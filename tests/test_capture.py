@@ -4,6 +4,7 @@ the camera, the dataset flag, and bad inputs (each a clear error naming the inpu
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 import sys
 from pathlib import Path
 
@@ -268,13 +269,15 @@ def _observations(anny, go: torch.Tensor, body_pose: torch.Tensor, noise: float,
     return obs, out.joints
 
 
-def _fit_errors(anny, obs, true_joints, still: bool, outline: float = 1.0) -> tuple[float, float, float, float]:
+def _fit_errors(anny, obs, true_joints, still: bool, outline: float = 1.0, **overrides
+                ) -> tuple[float, float, float, float]:
     """Fit (the smoothness terms off: 8 frames far apart; ``still``: FitConfig.still(); ``outline``
-    the outline term's weight) and return the mean 2D joint error (% of the height) and root-aligned
+    the outline term's weight; ``overrides``: other FitConfig fields) and return the mean 2D joint error (% of the height) and root-aligned
     3D joint error (mm) against the true joints [T,24,3], the spread of the fitted body_pose about its
     mean and of the pelvis' up axis about its mean (degrees)."""
     torch.manual_seed(0)
     cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0, outline=outline)
+    cfg = replace(cfg, **overrides)
     r = F.fit_body(anny, obs, cfg.still() if still else cfg, progress=False)
     fitted = PoseSequence.from_arrays(r.global_orient, r.body_pose, r.transl)
     with torch.no_grad():
@@ -313,15 +316,9 @@ def test_robust_smoothness_keeps_fast_arms(anny):
     pose[:, left] += swing
     pose[:, right] -= swing
     obs, joints = _observations(anny, _facing(np.zeros(T)), pose, 0.0, torch.Generator().manual_seed(8))
-    errors = []
-    for sigma in (0.0, F.FitConfig().smooth_sigma):
-        torch.manual_seed(0)
-        cfg = F.FitConfig(start_iters=50, iters=150, smooth_pose=0.0, smooth_sigma=sigma)
-        r = F.fit_body(anny, obs, cfg, progress=False)
-        with torch.no_grad():
-            f = anny(None, *(torch.as_tensor(a) for a in (r.global_orient, r.body_pose, r.transl))).joints
-        e2 = (F.project(joints, obs.K) - F.project(f, obs.K)).norm(dim=-1) / obs.height_px * 100
-        errors.append(float(e2.mean()))
+    default = F.FitConfig()
+    errors = [_fit_errors(anny, obs, joints, False, smooth=default.smooth, smooth_sigma=sigma)[0]
+              for sigma in (0.0, default.smooth_sigma)]
     squared, robust = errors
     assert robust < 0.3 and squared > 1.0, errors
 

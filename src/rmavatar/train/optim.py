@@ -86,7 +86,8 @@ class OptimConfig:
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),
                      nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier",
-                                  "smooth_poses", "pose_fit_mask"), at_least_one=("pose_sweep_steps", "pose_refit_steps"))
+                                  "smooth_poses", "pose_fit_mask"),
+                     at_least_one=("pose_sweep_steps", "pose_refit_steps"))
         if self.iters < 1:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
