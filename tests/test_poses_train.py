@@ -155,6 +155,45 @@ def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(n
     assert not (tmp_path / "old" / "pose_pass").exists()
 
 
+def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_path, monkeypatch):
+    """A two-pass run whose configs (RUN/config.yaml, the first pass's checkpoint) predate optim.pose_refits
+    and optim.pose_fit_mask, stopped in its first pass, resumes as it was trained: its sweep weighs the
+    mask 1 and its second pass has no refits (the defaults, 0 and [0.4, 0.7], would change both)."""
+    import rmavatar.evaluate.fit as fit_module
+    from rmavatar.train.checkpoint import save_checkpoint
+    import yaml
+
+    from rmavatar.utils.config import read_yaml
+
+    cfg = _two_pass_cfg(noisy)
+    cfg.optim.pose_fit_mask = 1.0
+    original_step = Trainer.step
+
+    def step(self):
+        out = original_step(self)
+        if self.iteration + 1 == 1:  # before the first pass's sweep (after its iteration 2)
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    run = tmp_path / "old"
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "step", step)
+        assert train(cfg, run, progress=False).interrupted
+    path = checkpoint_path(run / "pose_pass")
+    payload = read_checkpoint(path)
+    saved = read_yaml(run / "config.yaml")
+    for optim in (payload["config"]["optim"], saved["optim"]):
+        del optim["pose_refits"], optim["pose_fit_mask"]
+    save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
+    (run / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
+    fits, original_fit = [], fit_module.fit_poses
+    monkeypatch.setattr(fit_module, "fit_poses", lambda *a, **k: fits.append(a[6].silhouette) or original_fit(*a, **k))
+    done = train(None, run, resume=True, progress=False)
+    assert done.iteration == 8 and fits == [1.0]  # the first pass's one sweep; no refits
+    final = read_checkpoint(checkpoint_path(run))["config"]["optim"]
+    assert tuple(final["pose_refits"]) == () and final["pose_fit_mask"] == 1.0
+
+
 def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_path, monkeypatch):
     """optim.pose_sweeps [0.8] on a 40-step run: one sweep, after iteration 32. Its fitted poses render
     the frames closer to their images than the poses before it (mean |render - target| with the avatar
@@ -209,6 +248,7 @@ def _two_pass_cfg(data):
     cfg.optim.pose_pass = 0.5
     cfg.optim.pose_sweeps = (0.5,)
     cfg.optim.pose_sweep_steps = 3
+    cfg.optim.pose_refits = ()  # the second pass holds the first pass's poses (refits: their own test)
     return cfg
 
 

@@ -42,8 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="learn per-frame corrections of the training poses: smoothed over +-2 frames, "
                              "then refined by a first pass of half the iterations (RUN/pose_pass) that fits "
                              "them to every training image at 20%% and 45%% of it, then the avatar is trained "
-                             "afresh on them for the full iterations (optim.smooth_poses, optim.pose_sweeps, "
-                             "optim.pose_pass; refits in the second pass: optim.pose_refits; docs/train.md). "
+                             "afresh on them for the full iterations and fits them again at 40%% and 70%% of it "
+                             "(optim.smooth_poses, optim.pose_sweeps, optim.pose_pass, optim.pose_refits; "
+                             "docs/train.md). "
                              "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")

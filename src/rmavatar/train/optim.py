@@ -65,23 +65,25 @@ class OptimConfig:
     # it), then trains on from them. Why: the first pass's poses are only as exact as its avatar, which
     # trained on poses that were moving; the second pass's avatar is sharper and aligns them better (D = 3
     # at the demo's size, fitted test: none 33.24 dB, [0.5] 33.46, [0.4, 0.7] 33.56; true poses 34.33;
-    # each refit costs as much as a sweep; docs/train.md). A lower lr than the first pass's sweeps: from
-    # poses already nearly right, 30 steps at 2e-2 overshoot (16 frames 0.56 px off in the image: 0.61
-    # px after, 0.49 at 5e-3). Empty = none, the default: the gain (+0.26 to +0.41 dB at D = 3, D = 6 and a
-    # captured clip) shows only after test-time fitting and costs 40-50% more training at 1,000 iterations.
-    pose_refits: tuple[float, ...] = ()
+    # the captured turn of docs/capture.md, with pose_fit_mask 0: 32.82 -> 32.98 dB fitted from its
+    # captured test poses; docs/train.md). A lower lr than the first pass's sweeps: from poses already
+    # nearly right, 30 steps at 2e-2 overshoot (16 frames 0.56 px off in the image: 0.61 px after, 0.49 at
+    # 5e-3). Each refit costs as much as a sweep: a few percent of a run at the default iters, 27-81% more
+    # training at the demo's 1,000. Empty = none (the second pass trains on the first pass's poses, held).
+    pose_refits: tuple[float, ...] = (0.4, 0.7)
     pose_refit_lr: float = 5e-3
     # Fitting steps per frame in a refit. 100 fit closer than 30 (D = 3, three refits, test fitted for
     # 300 steps: 33.87 dB against 33.72; true poses 34.33), the second pass taking 2.6x as long at 1,000
     # iterations (docs/evaluate.md).
     pose_refit_steps: int = 30
     # Weight of the alpha-vs-mask term in the sweeps' and refits' fitting (rmavatar.evaluate.fit's
-    # FitConfig.silhouette). Masks that were estimated mislead it: on the synthetic turn captured by
-    # rmavatar capture (MediaPipe's masks), the first pass's avatar fits 16 training frames to 0.62 px
-    # without it, 0.69 at 1, 0.79 at 3; at 0 with refits at [0.4, 0.7] the avatar scored 32.98 dB fitted
-    # from the captured test poses against 32.63 for the default (seed 0; docs/capture.md). Not measured
-    # yet on data with exact masks, where the term may help: 1 stays the default.
-    pose_fit_mask: float = 1.0
+    # FitConfig.silhouette); 0 = the images only. Why 0: estimated masks mislead the fit (the synthetic
+    # turn captured by rmavatar capture, MediaPipe's masks: the first pass's avatar fits 16 training
+    # frames to 0.62 px without the term, 0.69 at 1, 0.79 at 3; with refits, fitted from the captured
+    # test poses, 32.98 and 32.99 dB at 0 on training seeds 0 and 1 against 32.63 at 1 on seed 0, the
+    # true-pose avatars 33.47 and 33.42), and exact ones do not need it (D = 3 with refits: 33.61 dB
+    # fitted on test at 0 against 33.50-33.56 at 1, training poses 1.90 against 1.97-2.00 degrees).
+    pose_fit_mask: float = 0.0
 
     def validate(self) -> "OptimConfig":
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),

@@ -44,11 +44,12 @@ from rmavatar.train.checkpoint import (
     restore_rng,
     save_checkpoint,
 )
-from rmavatar.train.config import TrainConfig, config_differences, from_dict, load_config, save_config, to_dict
+from rmavatar.train.config import TrainConfig, config_differences, from_dict, save_config, to_dict
 from rmavatar.train.losses import lpips_units, total_loss
 from rmavatar.train.poses import PoseRefiner, read_poses, write_poses
 from rmavatar.data.checks import check_files
 from rmavatar.utils import UserError, atomic_path, check_writable_folder, resolve_device
+from rmavatar.utils.config import read_yaml
 from rmavatar.utils.device import constant
 
 
@@ -193,7 +194,18 @@ class _Interrupt:
 
 
 # A resumed run whose config lacks a setting was trained without it: these values keep it that way.
-_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0}}
+_BEFORE_THE_SETTING = {"optim": {"smooth_poses": 0, "pose_sweeps": (), "pose_pass": 0.0, "pose_refits": (),
+                                 "pose_fit_mask": 1.0}}
+
+
+def _as_trained(saved: dict) -> dict:
+    """A run's saved config (a checkpoint's or RUN/config.yaml's, as a dict) with each setting newer than
+    the run filled in with the value that reproduces how it was trained (``_BEFORE_THE_SETTING``)."""
+    for section, values in _BEFORE_THE_SETTING.items():
+        old = {k: v for k, v in values.items() if k not in saved.get(section, {})}
+        saved = {**saved, section: {**saved.get(section, {}), **old}}
+    return saved
+
 
 # The first pass of a two-pass run (optim.pose_pass) is a run of its own in this folder of RUN.
 POSE_PASS = "pose_pass"
@@ -228,18 +240,14 @@ def _train(cfg: TrainConfig | None, run_dir: Path, resume: bool, data: str | Non
     in_pose_pass = (resume and not checkpoint_path(run_dir).is_file()
                     and checkpoint_path(run_dir / POSE_PASS).is_file())
     if in_pose_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
-        ckpt, cfg = None, load_config(run_dir / "config.yaml")
+        path = run_dir / "config.yaml"
+        ckpt, cfg = None, from_dict(TrainConfig, _as_trained(read_yaml(path)), where=str(path))
         _check_resume_data(run_dir, data, cfg.data.path)
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
     elif resume:
         ckpt = ckpt or _resume_payload(run_dir, data)
-        saved = ckpt["config"]
-        # Settings newer than the run take the values that reproduce how it was trained.
-        for section, values in _BEFORE_THE_SETTING.items():
-            old = {k: v for k, v in values.items() if k not in saved.get(section, {})}
-            saved = {**saved, section: {**saved.get(section, {}), **old}}
-        cfg = from_dict(TrainConfig, saved, where=f"{checkpoint_path(run_dir)}:config")
+        cfg = from_dict(TrainConfig, _as_trained(ckpt["config"]), where=f"{checkpoint_path(run_dir)}:config")
         _apply_resume_overrides(cfg, overrides or [])
         cfg.validate()
         if cfg.optim.iters < int(ckpt["iteration"]):
@@ -300,7 +308,7 @@ def _first_pass(cfg: TrainConfig, run_dir: Path, poses_estimated: bool) -> tuple
     if not where.is_file():
         return first, None
     payload = read_checkpoint(where)
-    saved = payload["config"]
+    saved = _as_trained(payload["config"])
     differ = config_differences(saved, first, ignore=("optim.pose_refits", "optim.pose_refit_lr",
                                                           "optim.pose_refit_steps"))  # not the first's
     if differ:
