@@ -43,22 +43,28 @@ def _cfg(data, iters):
     return cfg
 
 
-def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypatch):
-    n = 6
-    whole = train(_cfg(noisy, n), tmp_path / "whole", progress=False)
-    assert whole.iteration == n
-    # The same run stopped by a real Ctrl-C after n/2 iterations (a checkpoint), then resumed to n.
+def _train_interrupted(cfg, run, monkeypatch, iteration, where=None):
+    """Train ``cfg`` into ``run`` stopped by a real Ctrl-C (SIGINT) after ``iteration`` of the pass whose
+    folder is named ``where`` (None: either), as a user stops it: the run saves a checkpoint and returns."""
     original = Trainer.step
 
     def step(self):
         out = original(self)
-        if self.iteration + 1 == n // 2:
+        if (where is None or self.run_dir.name == where) and self.iteration + 1 == iteration:
             os.kill(os.getpid(), signal.SIGINT)
         return out
 
     with monkeypatch.context() as m:
         m.setattr(Trainer, "step", step)
-        first = train(_cfg(noisy, n), tmp_path / "split", progress=False)
+        return train(cfg, run, progress=False)
+
+
+def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypatch):
+    n = 6
+    whole = train(_cfg(noisy, n), tmp_path / "whole", progress=False)
+    assert whole.iteration == n
+    # The same run stopped by a real Ctrl-C after n/2 iterations (a checkpoint), then resumed to n.
+    first = _train_interrupted(_cfg(noisy, n), tmp_path / "split", monkeypatch, n // 2)
     assert first.interrupted and first.iteration == n // 2
     train(None, tmp_path / "split", resume=True, progress=False)
     a = read_checkpoint(checkpoint_path(tmp_path / "whole"))["poses"]
@@ -167,18 +173,8 @@ def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_
 
     cfg = _two_pass_cfg(noisy)
     cfg.optim.pose_fit_mask = 1.0
-    original_step = Trainer.step
-
-    def step(self):
-        out = original_step(self)
-        if self.iteration + 1 == 1:  # before the first pass's sweep (after its iteration 2)
-            os.kill(os.getpid(), signal.SIGINT)
-        return out
-
-    run = tmp_path / "old"
-    with monkeypatch.context() as m:
-        m.setattr(Trainer, "step", step)
-        assert train(cfg, run, progress=False).interrupted
+    run = tmp_path / "old"  # stopped before the first pass's sweep (after its iteration 2)
+    assert _train_interrupted(cfg, run, monkeypatch, 1).interrupted
     path = checkpoint_path(run / "pose_pass")
     payload = read_checkpoint(path)
     saved = read_yaml(run / "config.yaml")
@@ -292,18 +288,8 @@ def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_p
 def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_path, monkeypatch, where):
     whole = tmp_path / "whole"
     train(_two_pass_cfg(noisy), whole, progress=False)
-    original = Trainer.step
-
-    def step(self):
-        out = original(self)
-        if self.run_dir.name == where and self.iteration + 1 == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-        return out
-
     run = tmp_path / "run"
-    with monkeypatch.context() as m:
-        m.setattr(Trainer, "step", step)
-        stopped = train(_two_pass_cfg(noisy), run, progress=False)
+    stopped = _train_interrupted(_two_pass_cfg(noisy), run, monkeypatch, 2, where)
     assert stopped.interrupted and stopped.iteration == 2
     assert checkpoint_path(run).is_file() == (where == "run")
     from rmavatar.utils import UserError
@@ -382,18 +368,8 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     trained = load_trained(whole)
     np.testing.assert_allclose(trained.training_poses.body_pose.numpy(), final["body_pose"], atol=1e-5)
 
-    stop = Trainer.step
-
-    def step(self):
-        out = stop(self)
-        if self.run_dir.name == "run" and self.iteration + 1 == 6:
-            os.kill(os.getpid(), signal.SIGINT)
-        return out
-
     run = tmp_path / "run"
-    with monkeypatch.context() as m:
-        m.setattr(Trainer, "step", step)
-        assert train(cfg, run, progress=False).interrupted
+    assert _train_interrupted(cfg, run, monkeypatch, 6, "run").interrupted
     train(None, run, resume=True, progress=False)
     a, b = read_checkpoint(checkpoint_path(whole)), read_checkpoint(checkpoint_path(run))
     assert a["iteration"] == b["iteration"] == 8
