@@ -79,8 +79,8 @@ class OptimConfig:
     # Weight of the alpha-vs-mask term in the sweeps' and refits' fitting (rmavatar.evaluate.fit's
     # FitConfig.silhouette); 0 = the images only. Why 0: estimated masks mislead the fit (the synthetic
     # turn captured by rmavatar capture, MediaPipe's masks: the first pass's avatar fits 16 training
-    # frames to 0.62 px without the term, 0.69 at 1, 0.79 at 3; with refits, fitted from the captured
-    # test poses, 32.98 and 32.99 dB at 0 on training seeds 0 and 1 against 32.63 at 1 on seed 0, the
+    # frames to 0.62 px without the term, 0.69 at 1, 0.79 at 3; fitted from the captured test poses:
+    # 32.63 dB at 1, 32.82 at 0, 32.98 at 0 with refits on training seed 0, 32.99 on seed 1; the
     # true-pose avatars 33.47 and 33.42), and exact ones do not need it (D = 3 with refits: 33.61 dB
     # fitted on test at 0 against 33.50-33.56 at 1, training poses 1.90 against 1.97-2.00 degrees).
     pose_fit_mask: float = 0.0
