@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,6 +58,16 @@ def _train_interrupted(cfg, run, monkeypatch, iteration, where=None):
     with monkeypatch.context() as m:
         m.setattr(Trainer, "step", step)
         return train(cfg, run, progress=False)
+
+
+def _forget_optim_settings(checkpoint: Path, keys) -> None:
+    """Rewrite ``checkpoint`` as one written before the optim settings ``keys`` existed."""
+    from rmavatar.train.checkpoint import save_checkpoint
+
+    payload = read_checkpoint(checkpoint)
+    for key in keys:
+        del payload["config"]["optim"][key]
+    save_checkpoint(checkpoint, {k: v for k, v in payload.items() if k not in ("format", "version")})
 
 
 def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypatch):
@@ -141,17 +152,12 @@ def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(n
     refined the dataset's poses as given, without sweeps, in one pass: it resumes as smooth_poses 0 (the
     default 2 would change the poses it refines and be refused), no sweeps and one pass (the default
     would hold its poses still)."""
-    from rmavatar.train.checkpoint import save_checkpoint
-
     cfg = _cfg(noisy, 4)
     cfg.optim.smooth_poses = 0
     cfg.optim.pose_sweeps = ()
     train(cfg, tmp_path / "old", progress=False)
     path = checkpoint_path(tmp_path / "old")
-    payload = read_checkpoint(path)
-    for key in ("smooth_poses", "pose_sweeps", "pose_pass"):
-        del payload["config"]["optim"][key]
-    save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
+    _forget_optim_settings(path, ("smooth_poses", "pose_sweeps", "pose_pass"))
     swept = []
     monkeypatch.setattr(Trainer, "sweep_poses", lambda self: swept.append(self.iteration))
     done = train(None, tmp_path / "old", resume=True, overrides=[(8, "optim", "iters")], progress=False)
@@ -165,22 +171,18 @@ def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_
     """A two-pass run whose configs (RUN/config.yaml, the first pass's checkpoint) predate optim.pose_refits
     and optim.pose_fit_mask, stopped in its first pass, resumes as it was trained: its sweep weighs the
     mask 1 and its second pass has no refits (the defaults, 0 and [0.4, 0.7], would change both)."""
-    import rmavatar.evaluate.fit as fit_module
-    from rmavatar.train.checkpoint import save_checkpoint
     import yaml
 
+    import rmavatar.evaluate.fit as fit_module
     from rmavatar.utils.config import read_yaml
 
     cfg = _two_pass_cfg(noisy)
     cfg.optim.pose_fit_mask = 1.0
     run = tmp_path / "old"  # stopped before the first pass's sweep (after its iteration 2)
     assert _train_interrupted(cfg, run, monkeypatch, 1).interrupted
-    path = checkpoint_path(run / "pose_pass")
-    payload = read_checkpoint(path)
+    _forget_optim_settings(checkpoint_path(run / "pose_pass"), ("pose_refits", "pose_fit_mask"))
     saved = read_yaml(run / "config.yaml")
-    for optim in (payload["config"]["optim"], saved["optim"]):
-        del optim["pose_refits"], optim["pose_fit_mask"]
-    save_checkpoint(path, {k: v for k, v in payload.items() if k not in ("format", "version")})
+    del saved["optim"]["pose_refits"], saved["optim"]["pose_fit_mask"]
     (run / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
     fits, original_fit = [], fit_module.fit_poses
     monkeypatch.setattr(fit_module, "fit_poses", lambda *a, **k: fits.append(a[6].silhouette) or original_fit(*a, **k))
