@@ -95,22 +95,35 @@ def test_export_round_trip_matches_avatar_render(fake_run, tmp_path):
     assert v.count == n and [p.name for p in v.properties][-8:] == [
         "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     assert len([p for p in v.properties if p.name.startswith("f_rest_")]) == 9
-    # the avatar's own render in the canonical pose, through the model's forward
+    # the avatar in the canonical pose, through the model's own forward (not export's code path)
     body, avatar = fake_run.body, fake_run.avatar
     zero = torch.zeros(1, 3)
     verts = body(None, zero, torch.zeros(1, 69), zero).vertices[0]
     with torch.no_grad():
         gs = avatar(verts, torch.zeros(69))
-    # world-space scales in the file, not face-local ones
-    np.testing.assert_allclose(np.exp(np.asarray(v["scale_1"], np.float64)), gs.scales[:, 1].numpy(), rtol=1e-5)
     back = read_ply(out)
+    # the file holds those Gaussians to float32 round-trip accuracy: world-space scales (not face-local
+    # ones), unit quaternions, the SH turned into world axes
+    torch.testing.assert_close(back.means, gs.means, atol=1e-6, rtol=0)
+    torch.testing.assert_close(back.scales, gs.scales, rtol=1e-5, atol=0)
+    torch.testing.assert_close(back.quats, torch.nn.functional.normalize(gs.quats, dim=-1), atol=1e-6, rtol=0)
+    torch.testing.assert_close(back.opacities, gs.opacities, atol=1e-6, rtol=0)
+    torch.testing.assert_close(back.sh, gs.world_sh(), atol=1e-6, rtol=0)
+    np.testing.assert_allclose(np.exp(np.asarray(v["scale_1"], np.float64)), gs.scales[:, 1].numpy(), rtol=1e-5)
     for eye in ([0.0, 0.3, 3.0], [2.5, 0.8, -1.5]):
         view = look_at(eye, [0.0, 0.0, 0.0])
         K = intrinsics(SIZE, SIZE, 45.0)
         ref = render_image(gs, view, K, SIZE, SIZE)
         img = render_image(back, view, K, SIZE, SIZE)
         assert non_background((ref.numpy() * 255).astype(np.uint8)).mean() > 0.05
-        assert float((img - ref).abs().max()) < 1e-5
+        # The rasterizer's cutoffs (alpha < 1/255, transmittance <= 1e-4) make a pixel jump when a
+        # parameter moves by one float32 step across one of them, and the file cannot hold the
+        # avatar's log-scales, opacities and quaternions to the bit. So: nearly every value the same to
+        # 1e-5 (a wrong layout, unit or SH order changes most of them by far more), and the few that
+        # jump by no more than a cutoff's contribution.
+        diff = (img - ref).abs()
+        assert float((diff > 1e-5).float().mean()) <= 1e-3
+        assert float(diff.max()) < 0.02
 
 
 def test_export_motion_frame(fake_run, tmp_path):
