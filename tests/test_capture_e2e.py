@@ -11,7 +11,7 @@ import pytest
 import torch
 import yaml
 
-from rmavatar.capture.fit import STILL_HOLD_POSE, STILL_HOLD_UP
+from rmavatar.capture.fit import STILL_HOLD_POSE, STILL_HOLD_UP, STILL_KEYPOINTS
 from rmavatar.commands import main
 
 SIZE = 128
@@ -77,14 +77,14 @@ def test_capture_then_train(captured, tmp_path):
     ds = load_dataset(out)
     assert ds.poses_estimated and ds.body == "anny:neutral"
     fit = yaml.safe_load((out / "meta.yaml").read_text())["extra"]["fit"]
-    assert (fit["hold_pose"], fit["hold_up"]) == (STILL_HOLD_POSE, STILL_HOLD_UP)
+    assert (fit["hold_pose"], fit["hold_up"], fit["keypoints"]) == (STILL_HOLD_POSE, STILL_HOLD_UP, STILL_KEYPOINTS)
     assert {s: len(v) for s, v in ds.splits.items()} == {"train": TRAIN, "test": TEST}
     assert (out / "contact_sheet.png").is_file()
     assert main(["inspect", str(out)]) == 0
     e2, e3 = fitted_vs_true(truth, out)
-    # measured: 0.62 % and 21 mm (0.72 % and 24 mm before the outline term; 1.02 % and 33 mm before
-    # --still held the up axis and the silhouette weighed 20; 1.03 % and 35 mm without --still;
-    # MediaPipe's own landmarks are 1.1 % off at the median)
+    # measured: 0.59 % and 20 mm (0.62 % and 21 mm before --still weighed the keypoints 0.3; 0.72 % and
+    # 24 mm before the outline term; 1.02 % and 33 mm before --still held the up axis and the silhouette
+    # weighed 20; 1.03 % and 35 mm without --still; MediaPipe's own landmarks are 1.1 % off at the median)
     assert e2 < 1.6 and e3 < 75, (e2, e3)
 
     cfg = TrainConfig()
@@ -98,9 +98,9 @@ def test_capture_then_train(captured, tmp_path):
     cfg.device = "cpu"
     train(cfg, tmp_path / "run", progress=False)
     res = evaluate_run(tmp_path / "run", split="test", progress=False)
-    # measured: 21.43 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps
-    # and refits, fitting without the mask term; 21.55 before refits and optim.pose_fit_mask 0; 21.29
-    # before the capture's outline term, 20.44 before --still held the up axis and the silhouette weighed
-    # 20, 20.57 without --still, 21.0 before pose refinement existed; the default 30-step sweeps were not
-    # measured here)
+    # measured: 21.37 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps
+    # and refits, fitting without the mask term; 21.43 before --still weighed the keypoints 0.3, 21.55
+    # before refits and optim.pose_fit_mask 0; 21.29 before the capture's outline term, 20.44 before
+    # --still held the up axis and the silhouette weighed 20, 20.57 without --still, 21.0 before pose
+    # refinement existed; the default 30-step sweeps were not measured here)
     assert res["mean"]["psnr"] > 20.0, res["mean"]

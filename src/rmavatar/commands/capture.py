@@ -52,7 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--still", action="store_true",
                         help="the person holds one pose and turns on the spot (the recommended turn in an "
                              "A-pose): every frame's pose and up direction are pulled towards the clip's mean, "
-                             "which removes most of the pose error; wrong for walking, dancing or gestures")
+                             "and the mask's outline, seen from every side, weighs more against the "
+                             "landmarks; this removes most of the pose error; wrong for walking, dancing or "
+                             "gestures")
     parser.add_argument("--iters", type=int, default=None, metavar="N",
                         help="fitting iterations (default 400, after 100 to start)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
