@@ -176,6 +176,111 @@ def composite_forward(means2d, conics, colors, opacities, background, offsets, i
     return image, t_final, n_last
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _start_tile_backward(t, px0, py0, tw, th, background, t_final, n_last, v_image, trans, behind, stop, v_bg_tiles):
+    """Set up tile ``t``'s per-pixel backward state from the forward's: ``trans`` = T_final, ``behind`` =
+    T_final * background (the colour composited behind the last contributor), ``stop`` = n_last, and
+    add the tile's background gradient (sum of v_image * T_final) to ``v_bg_tiles[t]``.
+    Returns the largest ``stop`` in the tile: the backward walks list entries [0, n_max) back to front."""
+    n_max = 0
+    for py in range(py0, py0 + th):
+        for px in range(px0, px0 + tw):
+            k = (py - py0) * TILE + (px - px0)
+            T = t_final[py, px]
+            trans[k] = T
+            behind[k, 0] = T * background[0]
+            behind[k, 1] = T * background[1]
+            behind[k, 2] = T * background[2]
+            stop[k] = n_last[py, px]
+            n_max = max(n_max, stop[k])
+            v_bg_tiles[t, 0] += v_image[py, px, 0] * T
+            v_bg_tiles[t, 1] += v_image[py, px, 1] * T
+            v_bg_tiles[t, 2] += v_image[py, px, 2] * T
+    return n_max
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _gaussian_backward(
+    g, j, row, px0, py0, tw, th, means2d, conics, colors, opacities, t_final, v_image, v_alpha,
+    trans, behind, stop, grads,
+):
+    """Back-propagate Gaussian ``g``, entry ``j`` of its tile's list, through the tile's pixels it
+    covers, updating their ``trans`` (T_j) and ``behind`` (colour composited behind it) on the way.
+    Writes its summed gradients (dmx, dmy, da, db, dc, dr, dg, db, dopacity) to ``grads[row]``;
+    returns nothing."""
+    mx = means2d[g, 0]
+    my = means2d[g, 1]
+    ca = conics[g, 0]
+    cb = conics[g, 1]
+    cc = conics[g, 2]
+    op = opacities[g]
+    cr = colors[g, 0]
+    cg = colors[g, 1]
+    cbl = colors[g, 2]
+    smax = math.log(op / ALPHA_MIN) + _SIGMA_MARGIN
+    g_mx = 0.0
+    g_my = 0.0
+    g_a = 0.0
+    g_b = 0.0
+    g_c = 0.0
+    g_r = 0.0
+    g_g = 0.0
+    g_bl = 0.0
+    g_op = 0.0
+    y0, y1 = _row_span(py0, th, my, ca, cb, cc, smax)
+    for py in range(y0, y1):
+        fy = py + 0.5
+        x0, x1 = _col_span(px0, tw, fy, mx, my, ca, cb, cc, smax)
+        dy = my - fy
+        for px in range(x0, x1):
+            k = (py - py0) * TILE + (px - px0)
+            if j >= stop[k]:
+                continue
+            dx = mx - (px + 0.5)
+            sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            if sigma < 0.0 or sigma > smax:
+                continue
+            gauss = math.exp(-sigma)
+            raw = op * gauss
+            alpha = min(ALPHA_MAX, raw)
+            if alpha < ALPHA_MIN:
+                continue
+            inv = 1.0 / (1.0 - alpha)
+            T = trans[k] * inv
+            trans[k] = T
+            w = alpha * T
+            vr = v_image[py, px, 0]
+            vg = v_image[py, px, 1]
+            vb = v_image[py, px, 2]
+            g_r += w * vr
+            g_g += w * vg
+            g_bl += w * vb
+            v_a = (cr * T * vr + cg * T * vg + cbl * T * vb) - inv * (
+                behind[k, 0] * vr + behind[k, 1] * vg + behind[k, 2] * vb
+                - v_alpha[py, px] * t_final[py, px]
+            )
+            behind[k, 0] += cr * w
+            behind[k, 1] += cg * w
+            behind[k, 2] += cbl * w
+            if raw <= ALPHA_MAX:  # the clamp has zero slope
+                g_op += gauss * v_a
+                v_sigma = -raw * v_a
+                g_mx += (ca * dx + cb * dy) * v_sigma
+                g_my += (cb * dx + cc * dy) * v_sigma
+                g_a += 0.5 * dx * dx * v_sigma
+                g_b += dx * dy * v_sigma
+                g_c += 0.5 * dy * dy * v_sigma
+    grads[row, 0] = g_mx
+    grads[row, 1] = g_my
+    grads[row, 2] = g_a
+    grads[row, 3] = g_b
+    grads[row, 4] = g_c
+    grads[row, 5] = g_r
+    grads[row, 6] = g_g
+    grads[row, 7] = g_bl
+    grads[row, 8] = g_op
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
     means2d, conics, colors, opacities, background, offsets, ids, width, height, tiles_x, tile_order,
@@ -206,94 +311,14 @@ def composite_backward(
         trans = np.empty(TILE * TILE)
         behind = np.empty((TILE * TILE, 3))
         stop = np.zeros(TILE * TILE, np.int32)
-        n_max = 0
-        for py in range(py0, py0 + th):
-            for px in range(px0, px0 + tw):
-                k = (py - py0) * TILE + (px - px0)
-                T = t_final[py, px]
-                trans[k] = T
-                behind[k, 0] = T * background[0]
-                behind[k, 1] = T * background[1]
-                behind[k, 2] = T * background[2]
-                stop[k] = n_last[py, px]
-                n_max = max(n_max, stop[k])
-                v_bg_tiles[t, 0] += v_image[py, px, 0] * T
-                v_bg_tiles[t, 1] += v_image[py, px, 1] * T
-                v_bg_tiles[t, 2] += v_image[py, px, 2] * T
+        n_max = _start_tile_backward(
+            t, px0, py0, tw, th, background, t_final, n_last, v_image, trans, behind, stop, v_bg_tiles
+        )
         for j in range(n_max - 1, -1, -1):
-            g = ids[start + j]
-            mx = means2d[g, 0]
-            my = means2d[g, 1]
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            op = opacities[g]
-            cr = colors[g, 0]
-            cg = colors[g, 1]
-            cbl = colors[g, 2]
-            smax = math.log(op / ALPHA_MIN) + _SIGMA_MARGIN
-            g_mx = 0.0
-            g_my = 0.0
-            g_a = 0.0
-            g_b = 0.0
-            g_c = 0.0
-            g_r = 0.0
-            g_g = 0.0
-            g_bl = 0.0
-            g_op = 0.0
-            y0, y1 = _row_span(py0, th, my, ca, cb, cc, smax)
-            for py in range(y0, y1):
-                fy = py + 0.5
-                x0, x1 = _col_span(px0, tw, fy, mx, my, ca, cb, cc, smax)
-                dy = my - fy
-                for px in range(x0, x1):
-                    k = (py - py0) * TILE + (px - px0)
-                    if j >= stop[k]:
-                        continue
-                    dx = mx - (px + 0.5)
-                    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if sigma < 0.0 or sigma > smax:
-                        continue
-                    gauss = math.exp(-sigma)
-                    raw = op * gauss
-                    alpha = min(ALPHA_MAX, raw)
-                    if alpha < ALPHA_MIN:
-                        continue
-                    inv = 1.0 / (1.0 - alpha)
-                    T = trans[k] * inv
-                    trans[k] = T
-                    w = alpha * T
-                    vr = v_image[py, px, 0]
-                    vg = v_image[py, px, 1]
-                    vb = v_image[py, px, 2]
-                    g_r += w * vr
-                    g_g += w * vg
-                    g_bl += w * vb
-                    v_a = (cr * T * vr + cg * T * vg + cbl * T * vb) - inv * (
-                        behind[k, 0] * vr + behind[k, 1] * vg + behind[k, 2] * vb
-                        - v_alpha[py, px] * t_final[py, px]
-                    )
-                    behind[k, 0] += cr * w
-                    behind[k, 1] += cg * w
-                    behind[k, 2] += cbl * w
-                    if raw <= ALPHA_MAX:  # the clamp has zero slope
-                        g_op += gauss * v_a
-                        v_sigma = -raw * v_a
-                        g_mx += (ca * dx + cb * dy) * v_sigma
-                        g_my += (cb * dx + cc * dy) * v_sigma
-                        g_a += 0.5 * dx * dx * v_sigma
-                        g_b += dx * dy * v_sigma
-                        g_c += 0.5 * dy * dy * v_sigma
-            row = start + j
-            grads[row, 0] = g_mx
-            grads[row, 1] = g_my
-            grads[row, 2] = g_a
-            grads[row, 3] = g_b
-            grads[row, 4] = g_c
-            grads[row, 5] = g_r
-            grads[row, 6] = g_g
-            grads[row, 7] = g_bl
-            grads[row, 8] = g_op
+            _gaussian_backward(
+                ids[start + j], j, start + j, px0, py0, tw, th, means2d, conics, colors, opacities, t_final,
+                v_image, v_alpha, trans, behind, stop, grads,
+            )
     v_bg = np.zeros(3)
     for t in range(n_tiles):
         v_bg[0] += v_bg_tiles[t, 0]

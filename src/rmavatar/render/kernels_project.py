@@ -124,6 +124,117 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
     return means2d, conics, depths, radii, visible, has_2d
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cov2d_grad_from_conic(conics, v_conics, g, V):
+    """conic = cov^-1: fills V [2,2] with v_cov = -conic G conic, G the symmetric gradient w.r.t. the
+    inverse (from row ``g`` of ``conics`` and ``v_conics``). Returns nothing."""
+    ia, ib, ic = conics[g, 0], conics[g, 1], conics[g, 2]
+    g00 = v_conics[g, 0]
+    g01 = 0.5 * v_conics[g, 1]
+    g11 = v_conics[g, 2]
+    # (inv G) then (inv G inv), inv = [[ia, ib], [ib, ic]]
+    t00 = ia * g00 + ib * g01
+    t01 = ia * g01 + ib * g11
+    t10 = ib * g00 + ic * g01
+    t11 = ib * g01 + ic * g11
+    vc00 = -(t00 * ia + t01 * ib)
+    vc01 = -(t00 * ib + t01 * ic)
+    vc11 = -(t10 * ib + t11 * ic)
+    V[0, 0] = vc00
+    V[0, 1] = vc01
+    V[1, 0] = vc01
+    V[1, 1] = vc11
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cov2d_backward(V, J, Sc, vSc, vJ):
+    """cov = J Sc J^T: fills vSc [3,3] = J^T V J and vJ [2,3] = 2 V J Sc from V = v_cov. Returns nothing."""
+    VJ = np.empty((2, 3))
+    for i in range(2):
+        for k in range(3):
+            VJ[i, k] = V[i, 0] * J[0, k] + V[i, 1] * J[1, k]
+    for i in range(3):
+        for k in range(3):
+            vSc[i, k] = J[0, i] * VJ[0, k] + J[1, i] * VJ[1, k]
+    for i in range(2):
+        for k in range(3):
+            vJ[i, k] = 2.0 * (VJ[i, 0] * Sc[0, k] + VJ[i, 1] * Sc[1, k] + VJ[i, 2] * Sc[2, k])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _camera_point_grad(x, y, tx, ty, rz, rz2, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg, vu, vv, vd, vJ):
+    """Returns (vx, vy, vz), the gradient w.r.t. the camera-space point (x, y, z = 1 / rz) from those
+    w.r.t. mean2d (vu, vv), depth (vd) and the Jacobian (vJ [2,3]); tx, ty are the clamped x, y.
+
+    J02 = -fx tx / z^2 with tx = x inside the band (bounds included, as gsplat): dJ02/dx = -fx / z^2,
+    dJ02/dz = 2 fx tx / z^3; outside, tx = z lim: dJ02/dx = 0, dJ02/dz = fx tx / z^3. Likewise J12 with y.
+    """
+    rz3 = rz2 * rz
+    vx = fx * rz * vu
+    vy = fy * rz * vv
+    vz = (
+        -fx * x * rz2 * vu - fy * y * rz2 * vv
+        - fx * rz2 * vJ[0, 0] - fy * rz2 * vJ[1, 1]
+        + vd
+    )
+    if x * rz <= lim_x_pos and x * rz >= -lim_x_neg:
+        vx -= fx * rz2 * vJ[0, 2]
+        vz += 2.0 * fx * tx * rz3 * vJ[0, 2]
+    else:
+        vz += fx * tx * rz3 * vJ[0, 2]
+    if y * rz <= lim_y_pos and y * rz >= -lim_y_neg:
+        vy -= fy * rz2 * vJ[1, 2]
+        vz += 2.0 * fy * ty * rz3 * vJ[1, 2]
+    else:
+        vz += fy * ty * rz3 * vJ[1, 2]
+    return vx, vy, vz
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _covariance_backward(vSc, Rv, R, M, s, vR, v_scales, g):
+    """Sc = Rv Sigma Rv^T, Sigma = M M^T, M = R S: from vSc = dL/dSc fills vR [3,3] = dL/dR and writes
+    v_scales[g] = dL/ds. Returns nothing."""
+    # v_Sigma = Rv^T vSc Rv; v_M = 2 v_Sigma M (v_Sigma symmetrised).
+    T = np.empty((3, 3))
+    for i in range(3):
+        for k in range(3):
+            T[i, k] = vSc[i, 0] * Rv[0, k] + vSc[i, 1] * Rv[1, k] + vSc[i, 2] * Rv[2, k]
+    vS = np.empty((3, 3))
+    for i in range(3):
+        for k in range(3):
+            vS[i, k] = Rv[0, i] * T[0, k] + Rv[1, i] * T[1, k] + Rv[2, i] * T[2, k]
+    for j in range(3):
+        acc = 0.0
+        for i in range(3):
+            vm_ij = (vS[i, 0] + vS[0, i]) * M[0, j] + (vS[i, 1] + vS[1, i]) * M[1, j] + (vS[i, 2] + vS[2, i]) * M[2, j]
+            vR[i, j] = vm_ij * s[j]
+            acc += vm_ij * R[i, j]
+        v_scales[g, j] = acc
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _quat_backward(quats, qn, vR, v_quats, g):
+    """R = rotation of q / |q| (q = quats[g], |q| = qn): from vR = dL/dR writes v_quats[g] = dL/dq.
+    Returns nothing."""
+    w = quats[g, 0] / qn
+    qx = quats[g, 1] / qn
+    qy = quats[g, 2] / qn
+    qz = quats[g, 3] / qn
+    gw = 2.0 * (-qz * vR[0, 1] + qy * vR[0, 2] + qz * vR[1, 0] - qx * vR[1, 2] - qy * vR[2, 0] + qx * vR[2, 1])
+    gx = 2.0 * (qy * vR[0, 1] + qz * vR[0, 2] + qy * vR[1, 0] - 2.0 * qx * vR[1, 1] - w * vR[1, 2]
+                + qz * vR[2, 0] + w * vR[2, 1] - 2.0 * qx * vR[2, 2])
+    gy = 2.0 * (-2.0 * qy * vR[0, 0] + qx * vR[0, 1] + w * vR[0, 2] + qx * vR[1, 0] + qz * vR[1, 2]
+                - w * vR[2, 0] + qz * vR[2, 1] - 2.0 * qy * vR[2, 2])
+    gz = 2.0 * (-2.0 * qz * vR[0, 0] - w * vR[0, 1] + qx * vR[0, 2] + w * vR[1, 0] - 2.0 * qz * vR[1, 1]
+                + qy * vR[1, 2] + qx * vR[2, 0] + qy * vR[2, 1])
+    # Through the normalisation q / |q|.
+    dot = w * gw + qx * gx + qy * gy + qz * gz
+    v_quats[g, 0] = (gw - w * dot) / qn
+    v_quats[g, 1] = (gx - qx * dot) / qn
+    v_quats[g, 2] = (gy - qy * dot) / qn
+    v_quats[g, 3] = (gz - qz * dot) / qn
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def project_backward(means, quats, scales, viewmat, K, width, height, conics, has_2d, v_means2d, v_conics, v_depths):
     """Gradients w.r.t. means [N,3], quats [N,4], scales [N,3] from those w.r.t. means2d [N,2],
@@ -161,95 +272,18 @@ def project_backward(means, quats, scales, viewmat, K, width, height, conics, ha
         J[0, 2] = -fx * tx * rz2
         J[1, 1] = fy * rz
         J[1, 2] = -fy * ty * rz2
-        # conic = cov^-1: v_cov = -conic G conic, G the symmetric gradient w.r.t. the inverse.
-        ia, ib, ic = conics[g, 0], conics[g, 1], conics[g, 2]
-        g00 = v_conics[g, 0]
-        g01 = 0.5 * v_conics[g, 1]
-        g11 = v_conics[g, 2]
-        # (inv G) then (inv G inv), inv = [[ia, ib], [ib, ic]]
-        t00 = ia * g00 + ib * g01
-        t01 = ia * g01 + ib * g11
-        t10 = ib * g00 + ic * g01
-        t11 = ib * g01 + ic * g11
-        vc00 = -(t00 * ia + t01 * ib)
-        vc01 = -(t00 * ib + t01 * ic)
-        vc11 = -(t10 * ib + t11 * ic)
         V = np.empty((2, 2))
-        V[0, 0] = vc00
-        V[0, 1] = vc01
-        V[1, 0] = vc01
-        V[1, 1] = vc11
-        # cov = J Sc J^T: v_Sc = J^T V J, v_J = 2 V J Sc
-        VJ = np.empty((2, 3))
-        for i in range(2):
-            for k in range(3):
-                VJ[i, k] = V[i, 0] * J[0, k] + V[i, 1] * J[1, k]
+        _cov2d_grad_from_conic(conics, v_conics, g, V)
         vSc = np.empty((3, 3))
-        for i in range(3):
-            for k in range(3):
-                vSc[i, k] = J[0, i] * VJ[0, k] + J[1, i] * VJ[1, k]
         vJ = np.empty((2, 3))
-        for i in range(2):
-            for k in range(3):
-                vJ[i, k] = 2.0 * (VJ[i, 0] * Sc[0, k] + VJ[i, 1] * Sc[1, k] + VJ[i, 2] * Sc[2, k])
-        vu = v_means2d[g, 0]
-        vv = v_means2d[g, 1]
-        # J entries and mean2d w.r.t. the camera-space point. J02 = -fx tx / z^2 with tx = x inside the
-        # band (bounds included, as gsplat): dJ02/dx = -fx / z^2, dJ02/dz = 2 fx tx / z^3; outside,
-        # tx = z lim: dJ02/dx = 0, dJ02/dz = fx tx / z^3. Likewise J12 with y.
-        rz3 = rz2 * rz
-        vx = fx * rz * vu
-        vy = fy * rz * vv
-        vz = (
-            -fx * x * rz2 * vu - fy * y * rz2 * vv
-            - fx * rz2 * vJ[0, 0] - fy * rz2 * vJ[1, 1]
-            + v_depths[g]
+        _cov2d_backward(V, J, Sc, vSc, vJ)
+        vx, vy, vz = _camera_point_grad(
+            x, y, tx, ty, rz, rz2, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg,
+            v_means2d[g, 0], v_means2d[g, 1], v_depths[g], vJ,
         )
-        if x * rz <= lim_x_pos and x * rz >= -lim_x_neg:
-            vx -= fx * rz2 * vJ[0, 2]
-            vz += 2.0 * fx * tx * rz3 * vJ[0, 2]
-        else:
-            vz += fx * tx * rz3 * vJ[0, 2]
-        if y * rz <= lim_y_pos and y * rz >= -lim_y_neg:
-            vy -= fy * rz2 * vJ[1, 2]
-            vz += 2.0 * fy * ty * rz3 * vJ[1, 2]
-        else:
-            vz += fy * ty * rz3 * vJ[1, 2]
         for i in range(3):
             v_means[g, i] = Rv[0, i] * vx + Rv[1, i] * vy + Rv[2, i] * vz
-        # Sc = Rv Sigma Rv^T: v_Sigma = Rv^T vSc Rv; Sigma = M M^T: v_M = 2 v_Sigma M (symmetric).
-        T = np.empty((3, 3))
-        for i in range(3):
-            for k in range(3):
-                T[i, k] = vSc[i, 0] * Rv[0, k] + vSc[i, 1] * Rv[1, k] + vSc[i, 2] * Rv[2, k]
-        vS = np.empty((3, 3))
-        for i in range(3):
-            for k in range(3):
-                vS[i, k] = Rv[0, i] * T[0, k] + Rv[1, i] * T[1, k] + Rv[2, i] * T[2, k]
         vR = np.empty((3, 3))
-        s = scales[g]
-        for j in range(3):
-            acc = 0.0
-            for i in range(3):
-                vm_ij = (vS[i, 0] + vS[0, i]) * M[0, j] + (vS[i, 1] + vS[1, i]) * M[1, j] + (vS[i, 2] + vS[2, i]) * M[2, j]
-                vR[i, j] = vm_ij * s[j]
-                acc += vm_ij * R[i, j]
-            v_scales[g, j] = acc
-        w = quats[g, 0] / qn
-        qx = quats[g, 1] / qn
-        qy = quats[g, 2] / qn
-        qz = quats[g, 3] / qn
-        gw = 2.0 * (-qz * vR[0, 1] + qy * vR[0, 2] + qz * vR[1, 0] - qx * vR[1, 2] - qy * vR[2, 0] + qx * vR[2, 1])
-        gx = 2.0 * (qy * vR[0, 1] + qz * vR[0, 2] + qy * vR[1, 0] - 2.0 * qx * vR[1, 1] - w * vR[1, 2]
-                    + qz * vR[2, 0] + w * vR[2, 1] - 2.0 * qx * vR[2, 2])
-        gy = 2.0 * (-2.0 * qy * vR[0, 0] + qx * vR[0, 1] + w * vR[0, 2] + qx * vR[1, 0] + qz * vR[1, 2]
-                    - w * vR[2, 0] + qz * vR[2, 1] - 2.0 * qy * vR[2, 2])
-        gz = 2.0 * (-2.0 * qz * vR[0, 0] - w * vR[0, 1] + qx * vR[0, 2] + w * vR[1, 0] - 2.0 * qz * vR[1, 1]
-                    + qy * vR[1, 2] + qx * vR[2, 0] + qy * vR[2, 1])
-        # Through the normalisation q / |q|.
-        dot = w * gw + qx * gx + qy * gy + qz * gz
-        v_quats[g, 0] = (gw - w * dot) / qn
-        v_quats[g, 1] = (gx - qx * dot) / qn
-        v_quats[g, 2] = (gy - qy * dot) / qn
-        v_quats[g, 3] = (gz - qz * dot) / qn
+        _covariance_backward(vSc, Rv, R, M, scales[g], vR, v_scales, g)
+        _quat_backward(quats, qn, vR, v_quats, g)
     return v_means, v_quats, v_scales
