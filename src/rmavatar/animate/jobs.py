@@ -29,12 +29,12 @@ class VideoOptions:
     """How a video is shot: ``size`` image height (width follows ``aspect``; both rounded up to even),
     vertical field of view, background RGB, frame rate."""
 
-    size: int = 512
-    aspect: float = 1.0
-    fov_deg: float = 30.0
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    fps: float = 30.0
-    progress: bool = True
+    size: int = 512  # frame height in pixels (rounded up to even)
+    aspect: float = 1.0  # frame width / height
+    fov_deg: float = 30.0  # vertical field of view in degrees
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # background RGB in 0..1 (white)
+    fps: float = 30.0  # frame rate of the video file
+    progress: bool = True  # show a progress bar while rendering
     overwrite: bool = False  # replace an output rmavatar cannot prove it wrote (see utils.outputs)
 
     def validate(self) -> "VideoOptions":

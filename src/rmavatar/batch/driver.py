@@ -38,10 +38,10 @@ CANCEL_WAIT_S = 120.0  # after Ctrl-C, how long running jobs get to write their 
 class BatchOptions:
     address: str | None = None  # None: a local Ray instance; "auto" or HOST:PORT: an existing cluster
     gpus_per_job: float | None = None  # None: 1 when the cluster has GPUs, else 0
-    cpus_per_job: float = 1.0
+    cpus_per_job: float = 1.0  # CPUs Ray reserves per job; its training threads are int(this), at least 1
     max_retries: int = 2  # resubmissions after a worker death
     retry_failed: bool = False  # run again jobs that failed with an error in an earlier invocation
-    progress: bool = True
+    progress: bool = True  # print the plan, a progress bar and the results table
 
 
 def import_ray():

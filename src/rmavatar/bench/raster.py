@@ -171,14 +171,11 @@ def _scene_stats(n, size, args) -> dict:
     }
 
 
-def run(args: argparse.Namespace) -> int:
-    import numpy as np  # noqa: F401  (imported before torch threads start, as in real use)
+def _check_args(args: argparse.Namespace) -> list[tuple[int, int]]:
+    """Check the options and apply ``--threads`` to torch and numba; returns the (N, size) configs."""
     import torch
 
-    from rmavatar.render import rasterize
-    from rmavatar.render.reference import reference_rasterize
     from rmavatar.utils import UserError
-    from rmavatar.utils.outputs import output_file
 
     configs = [_parse_config(c) for c in args.configs]
     if args.repeats < 1 or args.warmup < 0:
@@ -192,13 +189,11 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--threads must be 1..{numba.config.NUMBA_NUM_THREADS}")
         torch.set_num_threads(args.threads)
         numba.set_num_threads(args.threads)
-    cuda = args.device.startswith("cuda")
-    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    return configs
 
-    def fast(*a, **kw):
-        return rasterize(*a, backend=args.backend, **kw)
 
-    load_before = os.getloadavg()
+def _bench_configs(configs: list[tuple[int, int]], args: argparse.Namespace, sync, fast) -> list[dict]:
+    """Time ``fast`` on each (N, size) config, printing a line each; returns one result row per config."""
     results = []
     for n, size in configs:
         row = {"n": n, "size": size, **_bench_one(n, size, args, sync, fast)}
@@ -213,27 +208,42 @@ def run(args: argparse.Namespace) -> int:
             f"{row['gaussians_per_s_forward_backward'] / 1e3:.0f}k Gaussians/s (fwd+bwd)",
             flush=True,
         )
+    return results
 
-    reference = None
-    if not args.no_reference and not cuda:
-        n, size = _parse_config(REFERENCE_CONFIG)
-        ref_args = argparse.Namespace(**{**vars(args), "repeats": min(args.repeats, 3), "warmup": 1})
-        ref = _bench_one(n, size, ref_args, sync, reference_rasterize, dtype=torch.float64)
-        ours = _bench_one(n, size, ref_args, sync, fast, dtype=torch.float64)
-        reference = {
-            "n": n, "size": size, "dtype": "float64 (both)",
-            "reference": ref, "fast": ours,
-            "speedup_forward": ref["forward_s"] / ours["forward_s"],
-            "speedup_forward_backward": ref["forward_backward_s"] / ours["forward_backward_s"],
-        }
-        print(
-            f"dense reference N={n} {size}x{size}: forward+backward {ref['forward_backward_s'] * 1e3:.0f} ms "
-            f"(+{ref['peak_rss_growth_mb']:.0f} MB) vs {ours['forward_backward_s'] * 1e3:.1f} ms: "
-            f"{reference['speedup_forward_backward']:.0f}x faster",
-            flush=True,
-        )
 
-    report = {
+def _bench_reference(args: argparse.Namespace, sync, fast) -> dict:
+    """Time the dense float64 reference and ``fast`` on REFERENCE_CONFIG, printing the speed-up; returns
+    both timings and the speed-ups."""
+    import torch
+
+    from rmavatar.render.reference import reference_rasterize
+
+    n, size = _parse_config(REFERENCE_CONFIG)
+    ref_args = argparse.Namespace(**{**vars(args), "repeats": min(args.repeats, 3), "warmup": 1})
+    ref = _bench_one(n, size, ref_args, sync, reference_rasterize, dtype=torch.float64)
+    ours = _bench_one(n, size, ref_args, sync, fast, dtype=torch.float64)
+    reference = {
+        "n": n, "size": size, "dtype": "float64 (both)",
+        "reference": ref, "fast": ours,
+        "speedup_forward": ref["forward_s"] / ours["forward_s"],
+        "speedup_forward_backward": ref["forward_backward_s"] / ours["forward_backward_s"],
+    }
+    print(
+        f"dense reference N={n} {size}x{size}: forward+backward {ref['forward_backward_s'] * 1e3:.0f} ms "
+        f"(+{ref['peak_rss_growth_mb']:.0f} MB) vs {ours['forward_backward_s'] * 1e3:.1f} ms: "
+        f"{reference['speedup_forward_backward']:.0f}x faster",
+        flush=True,
+    )
+    return reference
+
+
+def _report(args: argparse.Namespace, results: list[dict], reference: dict | None, load_before) -> dict:
+    """The JSON report: settings, scene and method descriptions, machine, results; returns it."""
+    import torch
+
+    from rmavatar.render._numba import numba
+
+    return {
         "benchmark": "raster",
         "backend": args.backend,
         "device": args.device,
@@ -252,6 +262,28 @@ def run(args: argparse.Namespace) -> int:
         "results": results,
         "reference": reference,
     }
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np  # noqa: F401  (imported before torch threads start, as in real use)
+    import torch
+
+    from rmavatar.render import rasterize
+    from rmavatar.utils.outputs import output_file
+
+    configs = _check_args(args)
+    cuda = args.device.startswith("cuda")
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+
+    def fast(*a, **kw):
+        return rasterize(*a, backend=args.backend, **kw)
+
+    load_before = os.getloadavg()
+    results = _bench_configs(configs, args, sync, fast)
+    reference = None
+    if not args.no_reference and not cuda:
+        reference = _bench_reference(args, sync, fast)
+    report = _report(args, results, reference, load_before)
     if args.json:
         with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp:
             tmp.write_text(json.dumps(report, indent=2) + "\n")

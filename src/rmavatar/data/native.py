@@ -170,64 +170,88 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
     if meta.gender is not None and meta.gender not in GENDERS:
         raise UserError(f"write_native: gender must be one of {GENDERS} or None, got {meta.gender!r}")
 
-    from tqdm import tqdm
-
     with output_folder(out_dir, NATIVE_KIND, option="dataset") as tmp:
-        (tmp / "images").mkdir()
-        (tmp / "masks").mkdir()
-        size = None
-        image_iter, mask_iter = iter(images), iter(masks)
-        bar = tqdm(total=n, desc=f"writing {out_dir.name}", unit="frame", disable=not progress)
-        for i in range(n):
-            try:
-                image = next(image_iter)
-            except StopIteration:
-                raise UserError(f"write_native: {i} images for {n} frames of SMPL parameters") from None
-            try:
-                mask = next(mask_iter)
-            except StopIteration:
-                raise UserError(f"write_native: {i} masks for {n} frames of SMPL parameters") from None
-            image = to_uint8(image, f"image {i}")
-            mask = to_uint8(mask, f"mask {i}")
-            if image.ndim != 3 or image.shape[2] != 3:
-                raise UserError(f"write_native: image {i} must be [H,W,3], got {list(image.shape)}")
-            if size is None:
-                size = (image.shape[1], image.shape[0])
-                if cam_size is not None and cam_size != size:
-                    raise UserError(f"write_native: cameras are {cam_size[0]}x{cam_size[1]}, "
-                                    f"images {size[0]}x{size[1]}")
-            if (image.shape[1], image.shape[0]) != size:
-                raise UserError(f"write_native: image {i} is {image.shape[1]}x{image.shape[0]}, "
-                                f"image 0 is {size[0]}x{size[1]}")
-            if mask.shape != image.shape[:2]:
-                raise UserError(f"write_native: mask {i} is {list(mask.shape)}, its image "
-                                f"{list(image.shape[:2])}")
-            write_png(tmp / "images" / f"{i:05d}.png", image)
-            write_png(tmp / "masks" / f"{i:05d}.png", mask)
-            bar.update(1)
-        bar.close()
-        for what, it in (("images", image_iter), ("masks", mask_iter)):
-            if next(it, None) is not None:
-                raise UserError(f"write_native: more {what} than the {n} frames of SMPL parameters")
+        size = _write_frames(tmp, images, masks, n, cam_size, f"writing {out_dir.name}", progress)
         np.savez(tmp / "cameras.npz", K=K, viewmat=V)
         np.savez(tmp / "smpl.npz", **p)
-        doc = {
-            "format": FORMAT,
-            "version": VERSION,
-            "name": str(meta.name),
-            "gender": meta.gender,
-            "body": meta.body,
-            "fps": float(meta.fps) if meta.fps is not None else None,
-            "width": int(size[0]),
-            "height": int(size[1]),
-            "num_frames": int(n),
-            "splits": splits,
-            "poses": POSE_SOURCES[bool(meta.poses_estimated)],
-            "extra": _plain(meta.extra),
-        }
         with open(tmp / "meta.yaml", "w") as f:
-            yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None, width=100)
+            yaml.safe_dump(_meta_doc(meta, size, n, splits), f, sort_keys=False, default_flow_style=None, width=100)
     return out_dir
+
+
+def _next_frame(image_iter, mask_iter, i: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``i``'s image and mask from their iterators, as uint8; returns (image, mask).
+    Raises UserError when either iterator ran out before ``n`` frames."""
+    try:
+        image = next(image_iter)
+    except StopIteration:
+        raise UserError(f"write_native: {i} images for {n} frames of SMPL parameters") from None
+    try:
+        mask = next(mask_iter)
+    except StopIteration:
+        raise UserError(f"write_native: {i} masks for {n} frames of SMPL parameters") from None
+    return to_uint8(image, f"image {i}"), to_uint8(mask, f"mask {i}")
+
+
+def _check_frame(image: np.ndarray, mask: np.ndarray, i: int, size, cam_size) -> tuple[int, int]:
+    """Check frame ``i``'s shapes against the cameras' size and image 0's ``size`` (None at frame 0);
+    returns the dataset's (width, height). Raises UserError on a mismatch."""
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise UserError(f"write_native: image {i} must be [H,W,3], got {list(image.shape)}")
+    if size is None:
+        size = (image.shape[1], image.shape[0])
+        if cam_size is not None and cam_size != size:
+            raise UserError(f"write_native: cameras are {cam_size[0]}x{cam_size[1]}, "
+                            f"images {size[0]}x{size[1]}")
+    if (image.shape[1], image.shape[0]) != size:
+        raise UserError(f"write_native: image {i} is {image.shape[1]}x{image.shape[0]}, "
+                        f"image 0 is {size[0]}x{size[1]}")
+    if mask.shape != image.shape[:2]:
+        raise UserError(f"write_native: mask {i} is {list(mask.shape)}, its image "
+                        f"{list(image.shape[:2])}")
+    return size
+
+
+def _write_frames(tmp: Path, images: Iterable[np.ndarray], masks: Iterable[np.ndarray], n: int, cam_size,
+                  desc: str, progress: bool) -> tuple[int, int]:
+    """Write ``n`` images and masks as PNGs to ``tmp/images`` and ``tmp/masks`` as they come; returns the
+    frames' (width, height). Raises UserError on too few or too many frames or mismatched shapes."""
+    from tqdm import tqdm
+
+    (tmp / "images").mkdir()
+    (tmp / "masks").mkdir()
+    size = None
+    image_iter, mask_iter = iter(images), iter(masks)
+    bar = tqdm(total=n, desc=desc, unit="frame", disable=not progress)
+    for i in range(n):
+        image, mask = _next_frame(image_iter, mask_iter, i, n)
+        size = _check_frame(image, mask, i, size, cam_size)
+        write_png(tmp / "images" / f"{i:05d}.png", image)
+        write_png(tmp / "masks" / f"{i:05d}.png", mask)
+        bar.update(1)
+    bar.close()
+    for what, it in (("images", image_iter), ("masks", mask_iter)):
+        if next(it, None) is not None:
+            raise UserError(f"write_native: more {what} than the {n} frames of SMPL parameters")
+    return size
+
+
+def _meta_doc(meta: NativeMeta, size: tuple[int, int], n: int, splits: dict[str, list[int]]) -> dict:
+    """The contents of ``meta.yaml``, in file order; returns them as a plain dict."""
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "name": str(meta.name),
+        "gender": meta.gender,
+        "body": meta.body,
+        "fps": float(meta.fps) if meta.fps is not None else None,
+        "width": int(size[0]),
+        "height": int(size[1]),
+        "num_frames": int(n),
+        "splits": splits,
+        "poses": POSE_SOURCES[bool(meta.poses_estimated)],
+        "extra": _plain(meta.extra),
+    }
 
 
 def _plain(value):

@@ -209,19 +209,52 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     cams = annots["cams"]
     num_cams = len(cams["K"])
     camera = _camera_index(camera, num_cams, annots_path, "camera")
-    if views is None or views == "":
-        views = []
-    elif views == "all":
-        views = [c for c in range(num_cams) if c != camera]
-    else:
-        items = views.split(",") if isinstance(views, str) else list(views)
-        views = [_camera_index(v, num_cams, annots_path, "view") for v in items]
+    views = _view_indices(views, camera, num_cams, annots_path)
     if mask not in MASK_MODES:
         raise UserError(f"mask must be one of {MASK_MODES}, got {mask!r}")
 
     ims = annots["ims"]
-    num = len(ims)
     name = root.name
+    plan = _frame_plan(name, len(ims), annots_path, camera, views)
+    params_dir, offset = _params_folder(root, params)
+    paths = _frame_paths(root, ims, plan, _mask_folders(root, mask), annots_path)
+
+    used = sorted({i for pairs in plan.values() for i, _ in pairs})
+    shapes, conv = _converted_params(params_dir, offset, used, body)
+    row = {i: k for k, i in enumerate(used)}
+
+    width, height = _image_size(paths[used[0], camera][0] if (used[0], camera) in paths else
+                                next(iter(paths.values()))[0])
+    cameras, distortion = _cameras(cams, plan, width, height)
+    records = {
+        split: [FrameRecord(index=i, image=paths[i, c][0], masks=paths[i, c][1], camera=cameras[c],
+                            betas=shapes[row[i]].astype(np.float32),
+                            global_orient=conv["global_orient"][row[i]],
+                            body_pose=conv["body_pose"][row[i]], transl=conv["transl"][row[i]])
+                for i, c in pairs]
+        for split, pairs in plan.items()}
+    return ZJUDataset(kind="zju", name=name if camera == 0 else f"{name}-cam{camera}", root=root,
+                      records=records, source_size=(width, height), gender="neutral", fps=None, size=size,
+                      cache_mb=cache_mb, distortion=distortion)
+
+
+def _view_indices(views, camera: int, num_cams: int, annots_path: Path) -> list[int]:
+    """The ``views`` option ("3,9,15", a list, "all", None or "") as checked camera indices; returns them
+    ("all": every camera but ``camera``)."""
+    if views is None or views == "":
+        return []
+    if views == "all":
+        return [c for c in range(num_cams) if c != camera]
+    items = views.split(",") if isinstance(views, str) else list(views)
+    return [_camera_index(v, num_cams, annots_path, "view") for v in items]
+
+
+def _frame_plan(name: str, num: int, annots_path: Path, camera: int, views: list[int]) -> dict[str, list]:
+    """Which (frame, camera) pairs each split holds; returns {split: [(frame, camera)]}.
+
+    The paper's train/test frames for the subjects in SPLITS, else every TRAIN_STEP-th frame as train and
+    no test; with ``views``, a ``novel_view`` split of the test frames (train where there is no test)
+    seen by those cameras."""
     sid = _subject_id(name)
     if sid in SPLITS:
         last_train, last_test = SPLITS[sid]
@@ -231,12 +264,16 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     else:
         warn(f"{name}: no standard split; every {TRAIN_STEP}th frame is 'train', there is no test split")
         splits = {"train": list(range(0, num, TRAIN_STEP))}
-    # split -> [(frame, camera)]
     plan = {s: [(i, camera) for i in idx] for s, idx in splits.items()}
     if views:
         base = splits.get("test", splits["train"])
         plan["novel_view"] = [(i, c) for c in views for i in base]
+    return plan
 
+
+def _params_folder(root: Path, params: str | None) -> tuple[Path, int]:
+    """The SMPL parameter folder (``params``, default new_params/ where it exists, else params/); returns
+    (folder, number of its first file)."""
     if params is None:
         params = "new_params" if (root / "new_params").is_dir() else "params"
     params_dir = root / params
@@ -244,12 +281,22 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
         raise UserError(f"folder {params_dir} does not exist (ZJU SMPL parameters: params/ or new_params/)")
     # CoreView_313/315 number their parameter files from 1, the others from 0.
     offset = 0 if (params_dir / "0.npy").is_file() or not (params_dir / "1.npy").is_file() else 1
+    return params_dir, offset
 
+
+def _mask_folders(root: Path, mask: str) -> tuple[Path, ...]:
+    """The existing mask folders the ``mask`` mode reads; returns them (UserError if there is none)."""
     wanted = {"union": ("mask", "mask_cihp"), "mask": ("mask",), "cihp": ("mask_cihp",)}[mask]
     mask_dirs = tuple(root / m for m in wanted if (root / m).is_dir())
     if not mask_dirs:
         raise UserError(f"{root} has no mask folder ({' or '.join(str(root / m) for m in wanted)})")
+    return mask_dirs
 
+
+def _frame_paths(root: Path, ims, plan: dict[str, list], mask_dirs: tuple[Path, ...],
+                 annots_path: Path) -> dict[tuple[int, int], tuple[Path, tuple[Path, ...]]]:
+    """Image and existing mask files of every planned (frame, camera); returns {(frame, camera): (image,
+    masks)}, checked to exist."""
     paths = {}
     for i, c in sorted({ic for pairs in plan.values() for ic in pairs}):
         try:
@@ -265,8 +312,12 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
             raise UserError(f"frame {i} has no mask: none of "
                             f"{', '.join(str(d / Path(rel).with_suffix('.png')) for d in mask_dirs)} exists")
         paths[i, c] = (image, masks)
+    return paths
 
-    used = sorted({i for pairs in plan.values() for i, _ in pairs})
+
+def _converted_params(params_dir: Path, offset: int, used: list[int], body) -> tuple[np.ndarray, dict]:
+    """Load the ``used`` frames' ZJU parameters and convert them to SMPL's; returns (shapes [F,10] as
+    stored, ``zju_to_smpl_params``'s dict), both in ``used`` order."""
     raw = {i: _load_params(params_dir / f"{i + offset}.npy") for i in used}
     Rh = np.stack([raw[i]["Rh"] for i in used])
     Th = np.stack([raw[i]["Th"] for i in used])
@@ -276,11 +327,11 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
     J0 = np.asarray(J0, np.float64)
     if J0.shape != (len(used), 3):
         raise UserError(f"the rest-pelvis provider returned {list(J0.shape)}, expected [{len(used)},3]")
-    conv = zju_to_smpl_params(Rh, Th, poses, J0)
-    row = {i: k for k, i in enumerate(used)}
+    return shapes, zju_to_smpl_params(Rh, Th, poses, J0)
 
-    width, height = _image_size(paths[used[0], camera][0] if (used[0], camera) in paths else
-                                next(iter(paths.values()))[0])
+
+def _cameras(cams: dict, plan: dict[str, list], width: int, height: int) -> tuple[dict, dict]:
+    """Cameras of the planned views; returns ({camera index: Camera}, {id(Camera): (K, distortion)})."""
     cameras, distortion = {}, {}
     for c in sorted({c for pairs in plan.values() for _, c in pairs}):
         K = np.asarray(cams["K"][c], np.float64)
@@ -289,16 +340,7 @@ def open_zju(root: Path, size=None, cache_mb: float = 1024.0, camera=0, mask: st
         viewmat[:3, 3] = np.asarray(cams["T"][c], np.float64).reshape(3) / 1000.0  # annots store millimetres
         cameras[c] = Camera(K, viewmat, width, height)
         distortion[id(cameras[c])] = (K, np.asarray(cams["D"][c], np.float64).reshape(-1))
-    records = {
-        split: [FrameRecord(index=i, image=paths[i, c][0], masks=paths[i, c][1], camera=cameras[c],
-                            betas=shapes[row[i]].astype(np.float32),
-                            global_orient=conv["global_orient"][row[i]],
-                            body_pose=conv["body_pose"][row[i]], transl=conv["transl"][row[i]])
-                for i, c in pairs]
-        for split, pairs in plan.items()}
-    return ZJUDataset(kind="zju", name=name if camera == 0 else f"{name}-cam{camera}", root=root,
-                      records=records, source_size=(width, height), gender="neutral", fps=None, size=size,
-                      cache_mb=cache_mb, distortion=distortion)
+    return cameras, distortion
 
 
 def _image_size(path: Path) -> tuple[int, int]:

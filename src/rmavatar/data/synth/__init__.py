@@ -24,18 +24,18 @@ class SynthConfig:
     of tracker-like noise on the *stored* poses (the images always show the true ones); ``ss`` samples
     per pixel side (anti-aliasing); ``distance`` metres from the camera to the person."""
 
-    size: int = 256
-    seed: int = 0
-    preset: str = "neutral"
-    train: int = 100
-    test: int = 30
-    novel_pose: int = 30
-    novel_views: int = 0
-    turns: float = 1.75
-    pose_noise: float = 0.0
-    ss: int = 3
-    distance: float = 3.6
-    fps: float = 7.5
+    size: int = 256  # image width and height in pixels
+    seed: int = 0  # picks the outfit colours, the motion's small variations and the pose noise
+    preset: str = "neutral"  # Anny body preset, one of PRESETS
+    train: int = 100  # training frames (the head of the turn)
+    test: int = 30  # test frames (the turn's contiguous tail)
+    novel_pose: int = 30  # frames of a different motion (walking, then arm raises), same camera
+    novel_views: int = 0  # extra cameras rendering the test poses (split novel_view)
+    turns: float = 1.75  # full turns over the train + test frames
+    pose_noise: float = 0.0  # degrees of tracker-like noise on the stored poses (images show the true ones)
+    ss: int = 3  # supersampling: samples per pixel side (anti-aliasing)
+    distance: float = 3.6  # metres from the camera to the person
+    fps: float = 7.5  # frame rate stored in meta.yaml (PeopleSnapshot's 30 fps subsampled by 4)
 
     def check(self) -> None:
         if self.size < 16:

@@ -166,19 +166,41 @@ def _subdivide(W: sp.csr_matrix, faces: np.ndarray) -> tuple[sp.csr_matrix, np.n
 def build_subject(body, seed: int) -> Subject:
     """Dress the body (an Anny :class:`~rmavatar.body.base.BodyModel` with ``face_part``,
     ``part_names``, ``skin_weights`` and ``bone_names``). ``seed`` picks the colours and noise."""
-    import torch
-
     rng = np.random.default_rng([seed, 7])
     faces = body.faces.cpu().numpy().astype(np.int64)
     canon = body.v_template.cpu().numpy().astype(np.float64)
+    J = _rest_joints(body)
+    part = _part_selector(body)
+    vgroup, fgroup = _body_groups(body, faces)
+    axis = np.array([J[PELVIS, 0], J[PELVIS, 2]])
+    lm = _landmarks(faces, canon, vgroup, J, part, axis)
+    aux = _radial_directions(canon, vgroup, J, axis)
+    mat = _face_materials(faces, canon, fgroup, part, lm.hem_y, lm.ground_y)
+    tunic = _tunic(faces, canon, vgroup, fgroup, J, lm, axis)
+    hair = _hair(faces, canon, part("head"), lm, seed)
+    return Subject(body=body, faces=faces, canon=canon, aux=aux, face_material=mat, tunic=tunic, hair=hair,
+                   landmarks=lm, palette=tx.make_palette(rng), seed=seed, axis=axis)  # fmt: skip
+
+
+def _rest_joints(body) -> np.ndarray:
+    """The body's joints [J,3] (float64) at zero pose and shape, i.e. in the canonical rest pose."""
+    import torch
+
     with torch.no_grad():
         z = torch.zeros(1, 3)
-        J = body(None, z, torch.zeros(1, 69), z).joints[0].cpu().numpy().astype(np.float64)
+        return body(None, z, torch.zeros(1, 69), z).joints[0].cpu().numpy().astype(np.float64)
+
+
+def _part_selector(body):
+    """Returns ``part(*names)``: the boolean mask [F] of the body's faces in any of the named parts."""
     part_names = list(body.part_names)
     face_part = body.face_part.cpu().numpy()
-    part = lambda *names: np.isin(face_part, [part_names.index(n) for n in names])  # noqa: E731
+    return lambda *names: np.isin(face_part, [part_names.index(n) for n in names])
 
-    # Dominant body group per vertex from the skinning weights.
+
+def _body_groups(body, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Dominant body group (index into _GROUP_NAMES) per vertex from the skinning weights, and per face
+    the most common of its vertices' groups; returns (vgroup [V], fgroup [F])."""
     W = body.skin_weights.cpu().numpy()
     group_of_bone = []
     for name in body.bone_names:
@@ -189,8 +211,13 @@ def build_subject(body, seed: int) -> Subject:
         G[:, g] += W[:, b]
     vgroup = G.argmax(1)
     fgroup = np.asarray([np.bincount(vgroup[f], minlength=len(_GROUP_NAMES)).argmax() for f in faces])
+    return vgroup, fgroup
 
-    # Landmarks.
+
+def _landmarks(faces: np.ndarray, canon: np.ndarray, vgroup: np.ndarray, J: np.ndarray, part,
+               axis: np.ndarray) -> tx.Landmarks:
+    """The canonical landmarks the textures and the tunic are laid out from (eyes, mouth, head, hem,
+    waist, chest, ground, ...); returns them."""
     centre_of = lambda names: canon[faces[part(*names)]].reshape(-1, 3).mean(0)  # noqa: E731
     eye_l, eye_r = centre_of(["eye_front.L", "eye_back.L"]), centre_of(["eye_front.R", "eye_back.R"])
     eye_pts = canon[faces[part("eye_front.L", "eye_back.L")]].reshape(-1, 3)
@@ -204,14 +231,16 @@ def build_subject(body, seed: int) -> Subject:
     crotch_y = float(canon[near_mid & (canon[:, 1] > J[KNEE_L, 1]) & (canon[:, 1] < J[PELVIS, 1]), 1].min())
     hem_y = crotch_y + 0.06
     waist_y = float(J[3, 1] + 0.02)
-    axis = np.array([J[PELVIS, 0], J[PELVIS, 2]])
     torso_front = canon[(vgroup == 0) & (np.abs(canon[:, 1] - (J[9, 1] + 0.03)) < 0.02), 2].max()
     chest = np.array([J[PELVIS, 0], J[9, 1] + 0.02, torso_front])
-    lm = tx.Landmarks(eye_l=eye_l, eye_r=eye_r, eye_radius=eye_radius, mouth=mouth, head_centre=head_centre,
-                      neck_y=float(J[NECK, 1]), neck=J[NECK], pelvis=J[PELVIS], hem_y=hem_y, waist_y=waist_y, chest=chest,
-                      ground_y=ground_y, foot_x=float(abs(J[ANKLE_L, 0] - J[PELVIS, 0])))  # fmt: skip
+    return tx.Landmarks(eye_l=eye_l, eye_r=eye_r, eye_radius=eye_radius, mouth=mouth, head_centre=head_centre,
+                        neck_y=float(J[NECK, 1]), neck=J[NECK], pelvis=J[PELVIS], hem_y=hem_y, waist_y=waist_y,
+                        chest=chest, ground_y=ground_y, foot_x=float(abs(J[ANKLE_L, 0] - J[PELVIS, 0])))  # fmt: skip
 
-    # Radial direction from the nearest bone axis: legs and arms their segments, torso a vertical axis.
+
+def _radial_directions(canon: np.ndarray, vgroup: np.ndarray, J: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Per vertex the unit radial direction [V,3] from the nearest bone axis: legs and arms their
+    segments, the torso (and the rest) a vertical axis through ``axis`` (x, z)."""
     aux = np.zeros_like(canon)
     torso_r = canon - np.array([axis[0], 0.0, axis[1]])
     torso_r[:, 1] = 0
@@ -227,8 +256,12 @@ def build_subject(body, seed: int) -> Subject:
             closer = d < best
             best[closer] = d[closer]
             aux[np.nonzero(sel)[0][closer]] = r[closer]
+    return aux
 
-    # Materials per face.
+
+def _face_materials(faces: np.ndarray, canon: np.ndarray, fgroup: np.ndarray, part, hem_y: float,
+                    ground_y: float) -> np.ndarray:
+    """Material id (texture.SKIN, TROUSERS, ...) per face [F]; returns it."""
     mat = np.full(len(faces), tx.SKIN, dtype=np.int64)
     fy = canon[faces, 1].mean(1)
     mat[fgroup == 0] = np.where(fy[fgroup == 0] > hem_y - 0.02, tx.UNDERSHIRT, tx.TROUSERS)
@@ -241,11 +274,7 @@ def build_subject(body, seed: int) -> Subject:
     mat[part("eye_front.L", "eye_back.L", "eye_front.R", "eye_back.R")] = tx.EYE
     mat[part("mouth_cavity", "tongue")] = tx.MOUTH
     mat[part("eye_cavity.L", "eye_cavity.R")] = tx.LASH
-
-    tunic = _tunic(faces, canon, vgroup, fgroup, J, lm, axis)
-    hair = _hair(faces, canon, part("head"), lm, seed)
-    return Subject(body=body, faces=faces, canon=canon, aux=aux, face_material=mat, tunic=tunic, hair=hair,
-                   landmarks=lm, palette=tx.make_palette(rng), seed=seed, axis=axis)  # fmt: skip
+    return mat
 
 
 def _tunic(faces, canon, vgroup, fgroup, J, lm: tx.Landmarks, axis) -> Shell:
