@@ -126,11 +126,11 @@ def test_init_values_and_centroid():
     av = Avatar(f, None, v, AvatarConfig(rectifier=False))
     assert av.num_gaussians == f.shape[0]
     assert torch.equal(av.face_ids, torch.arange(f.shape[0]))
-    g = av(v)
+    g, extras = av.forward_with_extras(v)
     assert torch.allclose(g.means, v[f].mean(1), atol=1e-6)
     assert torch.allclose(g.opacities, torch.full((f.shape[0],), 0.1))
     assert torch.allclose(0.5 + SH_C0 * g.sh[:, 0], torch.full((f.shape[0], 3), 0.5))
-    assert g.sh.shape == (f.shape[0], 1, 3) and g.sh_degree == 0 and g.offsets is None
+    assert g.sh.shape == (f.shape[0], 1, 3) and g.sh_degree == 0 and extras.offsets is None
     _, w, _ = triangle_frames(v, f)
     assert torch.allclose(g.scales, w.unsqueeze(-1).expand(-1, 3), rtol=1e-6)
     R, _, _ = triangle_frames(v, f)
@@ -280,8 +280,9 @@ def test_positional_encoding_values():
 
 
 def test_positional_encoding_gradient_matches_autograd_of_the_formula():
-    # The written-out backward (and the host-made window) against autograd through sin/cos, float64.
-    from rmavatar.avatar.rectifier import window_values
+    # The written-out backward (and the host-made window) against autograd through sin/cos, float64, and
+    # against the reference beside the fused Function.
+    from rmavatar.avatar.rectifier import _Encoding, window_values
 
     gen = torch.Generator().manual_seed(3)
     x = torch.randn(50, 3, generator=gen, dtype=torch.float64, requires_grad=True)
@@ -297,6 +298,11 @@ def test_positional_encoding_gradient_matches_autograd_of_the_formula():
             torch.testing.assert_close(ours, plain, rtol=0, atol=1e-15)
             (a,), (b,) = torch.autograd.grad(ours, x, grad), torch.autograd.grad(plain, x, grad, retain_graph=True)
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+        columns = None if alpha == 6.0 else torch.cat((wb, wb))
+        ref = _Encoding.reference(x, 6, columns)
+        torch.testing.assert_close(ref, plain, rtol=0, atol=1e-15)
+        (a,), (b,) = torch.autograd.grad(r.encode(x), x, grad), torch.autograd.grad(ref, x, grad)
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     assert window_values(6, 2.5) == pytest.approx([1, 1, 0.5, 0, 0, 0])
     half_open = torch.tensor(window_values(4, 2.5), dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda v: positional_encoding(v, 4, half_open), (x[:5].detach().requires_grad_(),))
@@ -345,6 +351,30 @@ def test_fused_backward_matches_autograd_of_the_plain_mlp():
     assert torch.autograd.gradcheck(lambda m, p: r(m, p), (small_mu, pose))
 
 
+@pytest.mark.parametrize("grouped", [False, True])
+def test_fused_mlp_matches_its_reference(grouped):
+    """_FusedMLP against _FusedMLP.reference (nn.functional.linear on the concatenated inputs), float64:
+    values and the gradients of every input (gamma, the pose rows, all weights and biases)."""
+    from rmavatar.avatar.rectifier import _FusedMLP
+
+    gen = torch.Generator().manual_seed(10)
+    r = Rectifier().double()
+    with torch.no_grad():
+        r.l5.weight.normal_(0, 0.1, generator=gen)
+    n, u = 120, (4 if grouped else 1)
+    gamma = torch.randn(n, 36, generator=gen, dtype=torch.float64, requires_grad=True)
+    pose = torch.randn(u, 69, generator=gen, dtype=torch.float64, requires_grad=True)
+    group = torch.randint(0, u, (n,), generator=gen) if grouped else None
+    weights = list(r._weights())
+    inputs = [gamma, pose, *weights]
+    fast = _FusedMLP.apply(gamma, pose, group, *weights, torch.float64)
+    ref = _FusedMLP.reference(gamma, pose, group, *weights)
+    torch.testing.assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+    upstream = torch.randn(n, 10, generator=gen, dtype=torch.float64)
+    for a, b in zip(torch.autograd.grad(fast, inputs, upstream), torch.autograd.grad(ref, inputs, upstream)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
 def test_bfloat16_rectifier_is_close_to_float32():
     gen = torch.Generator().manual_seed(9)
     r32 = Rectifier()
@@ -373,12 +403,12 @@ def test_rectifier_starts_as_identity_and_is_deterministic():
     av = Avatar(f, None, v, PAPER)
     randomise(av, gen)
     pose = torch.randn(69, generator=gen) * 0.5
-    g = av(v, pose)
+    g, extras = av.forward_with_extras(v, pose)
     mu, r, s = av.posed(v)
     assert torch.allclose(g.means, mu, atol=1e-3 * 0.3)
     assert torch.allclose(g.scales, s.clamp_min(1e-6), atol=1e-3 * 0.3)
     assert torch.allclose(quat_to_rotmat(g.quats), quat_to_rotmat(r), atol=1e-3)
-    assert all(o.abs().max() < 1e-3 for o in g.offsets)
+    assert all(o.abs().max() < 1e-3 for o in extras.offsets)
     av.eval()
     with torch.no_grad():
         a, b = av(v, pose), av(v, pose)
@@ -415,9 +445,9 @@ def test_gradients_reach_every_parameter(device):
     randomise(av, gen)
     av.to(device)
     av.active_sh_degree.fill_(3)
-    g = av(v.to(device), torch.randn(69, generator=gen).to(device))
+    g, extras = av.forward_with_extras(v.to(device), torch.randn(69, generator=gen).to(device))
     loss = (g.means.square().sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.square().sum())
-    loss = loss + sum(o.square().sum() for o in g.offsets)
+    loss = loss + sum(o.square().sum() for o in extras.offsets)
     loss.backward()
     for name, p in av.named_parameters():
         assert p.grad is not None and p.grad.abs().max() > 0, name
@@ -592,11 +622,39 @@ def test_unit_rows_value_and_gradient_match_autograd():
     v.requires_grad_(True)
     w = v.detach().clone().requires_grad_(True)
     grad = torch.randn(20, 4, generator=gen, dtype=torch.float64)
+    from rmavatar.avatar.geometry import _UnitRows
+
     ours = unit_rows(v, 1e-12)
     plain = w / torch.linalg.vector_norm(w, dim=-1, keepdim=True).clamp_min(1e-12)
     assert torch.equal(ours, plain)
     (ours * grad).sum().backward()
     (plain * grad).sum().backward()
     torch.testing.assert_close(v.grad, w.grad, rtol=1e-12, atol=1e-12)
+    x = v.detach().clone().requires_grad_(True)
+    ref = _UnitRows.reference(x, 1e-12)  # the reference beside the fused Function
+    assert torch.equal(ref, plain)
+    (ref * grad).sum().backward()
+    torch.testing.assert_close(v.grad, x.grad, rtol=1e-12, atol=1e-12)
     assert torch.autograd.gradcheck(lambda x: unit_rows(x, 1e-12), (v[2:].detach().clone().requires_grad_(True),))
 
+
+
+def test_face_table_columns_are_named_by_face_table():
+    """Avatar.face_table's columns, read through FaceTable's slices, are the frames they name."""
+    from rmavatar.avatar.geometry import FaceTable, quat_left_matrix
+    from rmavatar.avatar.model import FACE_TABLE
+
+    gen = torch.Generator().manual_seed(15)
+    v, f = sphere()
+    v = v.double() + 0.01 * torch.randn(v.shape, generator=gen, dtype=torch.float64)
+    av = Avatar(f, None, v.float(), AvatarConfig(rectifier=False)).double()
+    table = av.face_table(v)
+    assert FACE_TABLE == FaceTable.WIDTH == table.shape[-1] == 38
+    names = (FaceTable.R, FaceTable.wR, FaceTable.M, FaceTable.w, FaceTable.L)
+    assert [c.start for c in names] == [0, 9, 18, 21, 22] and names[-1].stop == FaceTable.WIDTH
+    assert all(a.stop == b.start for a, b in zip(names, names[1:]))  # in order, no gaps
+    R, w, M = triangle_frames(v, f)
+    assert torch.equal(table[:, FaceTable.R].reshape(-1, 3, 3), R)
+    torch.testing.assert_close(table[:, FaceTable.wR].reshape(-1, 3, 3), w[:, None, None] * R, rtol=0, atol=0)
+    assert torch.equal(table[:, FaceTable.M], M) and torch.equal(table[:, FaceTable.w], w.unsqueeze(-1))
+    assert torch.equal(table[:, FaceTable.L].reshape(-1, 4, 4), quat_left_matrix(rotmat_to_quat(R)))

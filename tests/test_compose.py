@@ -1,49 +1,30 @@
 """compose_gaussians (avatar/compose.py): the world Gaussians from the face rows and the rectifier's offsets,
-with a written-out backward, against the plain formulas under autograd (float64)."""
+with a written-out backward, against compose_reference, the plain formulas under autograd (float64)."""
 
 import pytest
 import torch
 
-from rmavatar.avatar.compose import compose_gaussians
+from rmavatar.avatar.compose import compose_gaussians, compose_reference
+from rmavatar.avatar.geometry import FaceTable
+from rmavatar.avatar.rectifier import LocalRectifier, PaperRectifier
 
 from devices import DEVICES
 
 F64 = torch.float64
 MIN_SCALE = 1e-3  # large enough that some of the random scales below are clamped
-
-
-def _unit(v):
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def _hamilton(a, b):
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), dim=-1)
+# The designs by their config names (their offsets: in the triangle's frame, in world units); None: no rectifier.
+DESIGNS = {"local": LocalRectifier(), "paper": PaperRectifier(), None: None}
 
 
 def _plain(g, means, quats, log_scales, offsets, design):
-    """The formulas of the module docstring, one autograd operation at a time; the columns of g read as
-    independent inputs (R 0:9, w R 9:18, M 18:21, w 21, L 22:38)."""
-    frames, wR = g[:, 0:9].reshape(-1, 3, 3), g[:, 9:18].reshape(-1, 3, 3)
-    M, w, L = g[:, 18:21], g[:, 21:22], g[:, 22:38].reshape(-1, 4, 4)
-    mu = (wR @ means.unsqueeze(-1)).squeeze(-1) + M
-    r = (L @ _unit(quats).unsqueeze(-1)).squeeze(-1)
-    s = w * torch.exp(log_scales)
-    if offsets is None:
-        return mu, r, s, frames
-    d_mu, d_s, d_r = offsets
-    if design == "local":
-        d_mu = (wR @ d_mu.unsqueeze(-1)).squeeze(-1)
-        d_s = w * d_s
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=d_r.dtype, device=d_r.device)
-    return (mu + d_mu, _hamilton(r, _unit(d_r + identity)), (s + d_s).clamp_min(MIN_SCALE), frames,
-            d_mu, d_s, d_r)
+    """compose_reference's outputs, flat as _call's (the formulas of compose.py's docstring, one autograd
+    operation at a time; the columns of g read as independent inputs)."""
+    mu, r, s, frames, world = compose_reference(g, means, quats, log_scales, offsets, DESIGNS[design], MIN_SCALE)
+    return (mu, r, s, frames) if world is None else (mu, r, s, frames, *world)
 
 
 def _inputs(n, device, gen, design):
-    g = torch.randn(n, 38, generator=gen, dtype=F64)
+    g = torch.randn(n, FaceTable.WIDTH, generator=gen, dtype=F64)
     means, quats, log_scales = (torch.randn(n, k, generator=gen, dtype=F64) for k in (3, 4, 3))
     log_scales = log_scales - 4.0  # s ~ 0.02 |w|: the clamp at MIN_SCALE bites for some
     quats[0] = 0.0  # shorter than eps: divided by eps, only the first term of the Jacobian
@@ -56,7 +37,7 @@ def _inputs(n, device, gen, design):
 
 def _call(design, g, means, quats, log_scales, d_mu, d_s, d_r):
     offsets = None if design is None else (d_mu, d_s, d_r)
-    mu, r, s, frames, world = compose_gaussians(g, means, quats, log_scales, offsets, design, MIN_SCALE)
+    mu, r, s, frames, world = compose_gaussians(g, means, quats, log_scales, offsets, DESIGNS[design], MIN_SCALE)
     return (mu, r, s, frames) if world is None else (mu, r, s, frames, *world)
 
 
@@ -108,7 +89,34 @@ def test_missing_output_gradients_count_as_zero():
 
 
 def test_offsets_need_a_design():
-    g = torch.zeros(2, 38)
+    g = torch.zeros(2, FaceTable.WIDTH)
     z = torch.zeros(2, 3)
-    with pytest.raises(ValueError, match="design"):
-        compose_gaussians(g, z, torch.zeros(2, 4), z, (z, z, torch.zeros(2, 4)), None)
+    for design in (None, "local"):  # no design, or a config name instead of the design object
+        with pytest.raises(ValueError, match="design"):
+            compose_gaussians(g, z, torch.zeros(2, 4), z, (z, z, torch.zeros(2, 4)), design)
+        with pytest.raises(ValueError, match="design"):
+            compose_reference(g, z, torch.zeros(2, 4), z, (z, z, torch.zeros(2, 4)), design)
+
+
+def test_reference_is_the_formulas_written_out():
+    """compose_reference itself against the formulas written here with the face rows' named columns
+    (R, w R, M, w, L), so the fast path is compared with something checked independently."""
+    gen = torch.Generator().manual_seed(6)
+    g, means, quats, log_scales, d_mu, d_s, d_r = _inputs(12, "cpu", gen, "local")
+    wR, M, w = g[:, FaceTable.wR].reshape(-1, 3, 3), g[:, FaceTable.M], g[:, FaceTable.w]
+    L = g[:, FaceTable.L].reshape(-1, 4, 4)
+    unit = lambda v: v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # noqa: E731
+    r_star = (L @ unit(quats).unsqueeze(-1)).squeeze(-1)
+    q = unit(d_r + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64))
+    pw, px, py, pz = r_star.unbind(-1)
+    qw, qx, qy, qz = q.unbind(-1)
+    r = torch.stack((pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw), -1)
+    for design in ("local", "paper"):
+        world = (((wR @ d_mu.unsqueeze(-1)).squeeze(-1), w * d_s) if design == "local" else (d_mu, d_s))
+        mu = (wR @ means.unsqueeze(-1)).squeeze(-1) + M + world[0]
+        s = (w * torch.exp(log_scales) + world[1]).clamp_min(MIN_SCALE)
+        want = (mu, r, s, g[:, FaceTable.R].reshape(-1, 3, 3), *world, d_r)
+        got = _plain(g, means, quats, log_scales, (d_mu, d_s, d_r), design)
+        for a, b in zip(got, want, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)

@@ -197,7 +197,7 @@ def test_reset_opacity_caps_and_clears_moments():
 
 
 def test_controller_statistics_and_cycle():
-    av, v = make(rectifier=True)
+    av, v = make(rectifier="paper")
     opt = adam_with_state(av)
     n = av.num_gaussians
     ctl = controller(av, opt, start=2, every=2, stop=5, reset_start=4, reset_every=10, grad_threshold=2e-4,
@@ -239,7 +239,7 @@ def test_max_gaussians_cap():
 def test_with_the_real_rasterizer():
     from rmavatar.render import rasterize
 
-    av, v = make(rectifier=True)
+    av, v = make(rectifier="paper")
     av.active_sh_degree.fill_(1)
     opt = adam_with_state(av)
     ctl = controller(av, opt, start=1, every=1, stop=10, reset_start=100, reset_every=100, grad_threshold=0.0)

@@ -6,8 +6,7 @@ import pytest
 import torch
 import trimesh
 
-from rmavatar.avatar import Avatar, AvatarConfig
-from rmavatar.render import GaussianSet
+from rmavatar.avatar import Avatar, AvatarConfig, AvatarExtras
 from rmavatar.train.config import LossConfig
 from rmavatar.train.losses import offset_loss, position_loss, scaling_loss, total_loss
 
@@ -34,24 +33,20 @@ def test_offset_loss_by_hand():
     assert math.isclose(float(offset_loss(d_mu, d_s, d_r)), 4.0 + 3.0 + 0.25, rel_tol=1e-6)
 
 
-def _fake_set(n=4):
+def _fake_extras(n=4):
     means = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0, 3, 4], [0, 0, 0]], requires_grad=True)
     log_s = torch.log(torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.6, 0.2], [0.9, 1.0, 0.6], [0.6, 0.6, 0.6]]))
     log_s.requires_grad_(True)
     d_mu = torch.full((n, 3), 0.1, requires_grad=True)
     d_s = torch.zeros(n, 3, requires_grad=True)
     d_r = torch.full((n, 4), 0.2, requires_grad=True)
-    g = GaussianSet(
-        means=torch.zeros(n, 3), quats=torch.zeros(n, 4), scales=torch.ones(n, 3), opacities=torch.ones(n),
-        sh=torch.zeros(n, 1, 3), sh_degree=0, offsets=(d_mu, d_s, d_r), local_means=means, local_log_scales=log_s,
-    )
-    return g
+    return AvatarExtras(local_means=means, local_log_scales=log_s, offsets=(d_mu, d_s, d_r))
 
 
 def test_total_loss_weights_and_switches():
     render = torch.full((16, 16, 3), 0.25)
     target = torch.full((16, 16, 3), 0.75)
-    g = _fake_set()
+    g = _fake_extras()
     ssim_fn = lambda a, b: torch.tensor(0.7)  # noqa: E731
     lpips_fn = lambda a, b: torch.tensor(0.1)  # noqa: E731
     pos = (0 + 1 + 4 + 0) / 4
@@ -79,6 +74,9 @@ def test_total_loss_weights_and_switches():
     assert math.isclose(float(loss.detach()), 0.5 + 2 * scal, rel_tol=1e-5)
     with pytest.raises(ValueError):
         total_loss(render[:8], target, g, cfg)
+    # No extras at all (None): the image terms only.
+    loss, terms = total_loss(render, target, None, cfg, never, never)
+    assert set(terms) == {"l1"} and math.isclose(float(loss.detach()), 0.5, rel_tol=1e-6)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -88,7 +86,7 @@ def test_total_loss_default_ssim_matches_metric(device):
     gen = torch.Generator().manual_seed(0)
     render = torch.rand(24, 24, 3, generator=gen).to(device)
     target = torch.rand(24, 24, 3, generator=gen).to(device)
-    g = _fake_set()
+    g = _fake_extras()
     w = LossConfig(rgb=0, lpips=0, pos=0, scaling=0, offset=0, ssim=1.0)
     loss, terms = total_loss(render, target, g, w)
     assert math.isclose(float(loss.detach()), 1 - float(ssim(render, target)), rel_tol=1e-6)
@@ -105,10 +103,10 @@ def test_loss_gradients_reach_every_avatar_parameter(device):
     with torch.no_grad():
         av.means.mul_(0).add_(1.5)  # beyond eps_pos
         av.log_scales.fill_(0.3)  # beyond eps_scaling
-    g = av(v, torch.randn(69).to(device))
+    g, extras = av.forward_with_extras(v, torch.randn(69).to(device))
     # A stand-in "render" that depends on every attribute, as the rasterizer does.
     render = (g.means.mean() + g.quats.mean() + g.scales.mean() + g.opacities.mean() + g.sh.mean()).expand(16, 16, 3)
-    loss, _ = total_loss(render, torch.zeros(16, 16, 3, device=device), g, LossConfig(ssim=0, lpips=0))
+    loss, _ = total_loss(render, torch.zeros(16, 16, 3, device=device), extras, LossConfig(ssim=0, lpips=0))
     loss.backward()
     for name, p in av.named_parameters():
         assert p.grad is not None and p.grad.abs().max() > 0, name
@@ -121,7 +119,7 @@ def test_total_loss_equals_the_plain_weighted_sum_in_float64():
     gen = torch.Generator().manual_seed(3)
     render = torch.rand(40, 40, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
     target = torch.rand(40, 40, 3, generator=gen, dtype=torch.float64)
-    g = _fake_set()
+    g = _fake_extras()
     for t in (g.local_means, g.local_log_scales, *g.offsets):
         t.data = t.data.double()
     cfg = LossConfig()
@@ -154,6 +152,11 @@ def test_fused_regularisers_match_the_three_definitions():
     grad = torch.tensor([0.3, -1.1, 2.0], dtype=torch.float64)
     for a, b in zip(torch.autograd.grad(fused, inputs, grad), torch.autograd.grad(plain, inputs, grad)):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+    ref = _Regularisers.reference(*inputs, 0.8, 0.6)  # the reference beside the Function: the same three
+    assert torch.equal(ref, plain)
+    fused = _Regularisers.apply(*inputs, 0.8, 0.6)
+    for a, b in zip(torch.autograd.grad(fused, inputs, grad), torch.autograd.grad(ref, inputs, grad)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
     mu_smooth = (mu.detach() + 0.05).requires_grad_(True)  # no |mu| = 0 row: the norm is differentiable
     assert torch.autograd.gradcheck(lambda *t: _Regularisers.apply(*t, 0.8, 0.6), (mu_smooth, *inputs[1:]))
 
@@ -169,3 +172,8 @@ def test_clamp_for_lpips_has_clamps_gradient():
     (ours * grad).sum().backward()
     (plain * grad).sum().backward()
     assert torch.equal(x.grad, y.grad)  # including the bounds 0 and 1 (passed) and NaN (blocked)
+    z = x.detach().clone().requires_grad_(True)
+    ref = _Clamp01.reference(z)  # the reference beside the Function is clamp itself
+    assert torch.equal(ref[:5], plain[:5]) and torch.isnan(ref[5])
+    (ref * grad).sum().backward()
+    assert torch.equal(x.grad, z.grad)

@@ -6,7 +6,9 @@ import torch
 import trimesh
 
 from rmavatar.avatar import GAUSSIAN_PARAMS, Avatar, AvatarConfig, Rectifier, quat_to_rotmat
-from rmavatar.avatar.trained import read_checkpoint
+from rmavatar.avatar.geometry import FaceTable
+from rmavatar.avatar.rectifier import DESIGNS, LocalRectifier, PaperRectifier, RectifierDesign, rectifier_design
+from rmavatar.avatar.run import read_checkpoint
 from rmavatar.train.config import TrainConfig, apply_overrides, load_config, save_config
 from rmavatar.utils import UserError
 
@@ -65,11 +67,11 @@ def test_only_local_offsets_turn_with_the_body(design):
     pose = torch.randn(69, generator=gen, dtype=torch.float64) * 0.5
     v = posed_toy(body, gen)
     Q, t = random_rotation(gen), torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64)
-    a, b = av(v, pose), av(v @ Q.T + t, pose)
-    for x in (a, b):
+    (a, ea), (b, eb) = av.forward_with_extras(v, pose), av.forward_with_extras(v @ Q.T + t, pose)
+    for x in (ea, eb):
         assert x.offsets[0].abs().max() > 1e-3  # the check below is not about zeros
-    rotated = (a.offsets[0] @ Q.T, a.offsets[1], a.offsets[2])
-    same = [torch.allclose(got, want, atol=1e-12, rtol=0) for got, want in zip(b.offsets, rotated)]
+    rotated = (ea.offsets[0] @ Q.T, ea.offsets[1], ea.offsets[2])
+    same = [torch.allclose(got, want, atol=1e-12, rtol=0) for got, want in zip(eb.offsets, rotated)]
     if design == "local":
         assert all(same)
         # so the whole rectified Gaussian moves rigidly with the body
@@ -94,9 +96,9 @@ def test_local_offsets_are_in_units_of_the_triangle_scale():
     av = make_avatar(body, "local", gen)
     pose = torch.randn(69, generator=gen, dtype=torch.float64) * 0.5
     v = posed_toy(body, gen)
-    a, b = av(v, pose), av(2.5 * v, pose)
-    assert torch.allclose(b.offsets[0], 2.5 * a.offsets[0], atol=1e-12)
-    assert torch.allclose(b.offsets[1], 2.5 * a.offsets[1], atol=1e-12)
+    (a, ea), (b, eb) = av.forward_with_extras(v, pose), av.forward_with_extras(2.5 * v, pose)
+    assert torch.allclose(eb.offsets[0], 2.5 * ea.offsets[0], atol=1e-12)
+    assert torch.allclose(eb.offsets[1], 2.5 * ea.offsets[1], atol=1e-12)
     assert torch.allclose(b.scales, 2.5 * a.scales, atol=1e-12)
 
 
@@ -109,8 +111,8 @@ def test_held_rectifier_outputs_give_the_same_gaussians(design):
     av = make_avatar(body, design, gen)
     pose = torch.randn(69, generator=gen, dtype=torch.float64) * 0.5
     v = posed_toy(body, gen)
-    a, b = av(v, pose), av(v, rectified=av.rectify(v, pose))
-    for x, y in zip((a.means, a.quats, a.scales, *a.offsets), (b.means, b.quats, b.scales, *b.offsets)):
+    (a, ea), (b, eb) = av.forward_with_extras(v, pose), av.forward_with_extras(v, rectified=av.rectify(v, pose))
+    for x, y in zip((a.means, a.quats, a.scales, *ea.offsets), (b.means, b.quats, b.scales, *eb.offsets)):
         torch.testing.assert_close(x, y, atol=1e-12, rtol=0)
     c = av(v, rectified=av.rectify(v, pose + 0.5))
     assert not torch.allclose(a.means, c.means, atol=1e-6)
@@ -148,8 +150,9 @@ def test_unseen_joints_change_nothing_seen_joints_do():
     for joint, seen in ((16, seen16), (5, torch.zeros_like(seen16))):  # joint 5 skins nothing
         moved = pose.clone()
         moved[3 * (joint - 1): 3 * joint] += torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64)
-        a, b = av(v, pose), av(v, moved)  # same mesh: only the rectifier's pose input differs
-        for x, y in zip(a.offsets, b.offsets):
+        # same mesh: only the rectifier's pose input differs
+        (a, ea), (b, eb) = av.forward_with_extras(v, pose), av.forward_with_extras(v, moved)
+        for x, y in zip(ea.offsets, eb.offsets):
             assert torch.equal(x[~seen], y[~seen])  # exactly
             if seen.any():
                 assert ((x[seen] - y[seen]).abs().amax(1) > 1e-9).all()
@@ -211,7 +214,7 @@ def test_anny_global_orientation_and_an_unseen_joint():
     with torch.no_grad():
         v0 = body(None, zero, pose, zero).vertices[0]
         v1 = body(None, orient, pose, zero).vertices[0]
-        a, b = av(v0, pose[0]), av(v1, pose[0])
+        a, b = av.forward_with_extras(v0, pose[0])[1], av.forward_with_extras(v1, pose[0])[1]
         Q = axis_angle_to_matrix(orient)[0]
         scale = a.offsets[0].abs().max()
         assert scale > 1e-4
@@ -221,7 +224,7 @@ def test_anny_global_orientation_and_an_unseen_joint():
         moved = pose.clone()
         moved[0, 57:60] += torch.tensor([0.5, -0.4, 0.3])
         v2 = body(None, zero, moved, zero).vertices[0]
-        c = av(v2, moved[0])
+        c = av.forward_with_extras(v2, moved[0])[1]
     seen = av.pose_masks[av.face_pose_group[av.face_ids], 57] == 1
     still = (v2 == v0).all(1)[body.faces[av.face_ids]].all(1)  # triangles the wrist does not move at all
     assert seen.sum() > 10 and (still & ~seen).sum() > 10000
@@ -237,7 +240,8 @@ def test_anny_global_orientation_and_an_unseen_joint():
 # ---------------------------------------------------------------- configs and checkpoints
 def test_config_values_and_yaml_round_trip(tmp_path):
     assert AvatarConfig().rectifier == "local"  # the default since the measurement in docs/model.md
-    assert AvatarConfig(rectifier=True).rectifier == "paper"  # older configs
+    with pytest.raises(UserError, match="model.rectifier must be one of"):  # the old switch: configs are migrated
+        AvatarConfig(rectifier=True)
     assert AvatarConfig(rectifier=False).rectifier is False
     with pytest.raises(UserError, match="model.rectifier must be one of paper, local"):
         AvatarConfig(rectifier="lokal")
@@ -278,11 +282,12 @@ def test_checkpoints_without_a_design_read_as_paper(tmp_path):
     """A version-2 checkpoint's rectifier: true is the paper's design (the v1 fixture is in test_trained)."""
     payload = {"format": "rmavatar-checkpoint", "version": 2, "iteration": 0, "betas": None,
                "avatar": {"config": {"rectifier": True}, "state_dict": {}},
-               "config": {"model": {"rectifier": False}}}
+               "config": {"model": {"rectifier": False}}, "data_spec": "synth", "body": {}, "optimizer": {},
+               "density": {}, "sampler": {}, "rng": {}, "saved_at": 0.0}
     torch.save(payload, tmp_path / "last.pt")
-    got = read_checkpoint(tmp_path / "last.pt")
-    assert got["version"] == 4 and got["avatar"]["config"]["rectifier"] == "paper" and got["poses"] is None
-    assert got["config"]["model"]["rectifier"] is False
+    got = read_checkpoint(tmp_path / "last.pt")  # read at all: migrated to today's version
+    assert got.avatar["config"]["rectifier"] == "paper" and got.poses is None
+    assert got.config["model"]["rectifier"] is False
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -313,3 +318,61 @@ def test_a_precomputed_face_table_gives_the_same_gaussians(device, design):
         av(None, pose, table=tables)
     with pytest.raises(ValueError, match="vertices must be"):
         av.face_table(verts[:, :5])
+
+
+# ---------------------------------------------------------------- the design classes
+def test_each_config_value_builds_its_design_with_the_same_state_keys():
+    assert list(DESIGNS) == ["paper", "local"] and rectifier_design(False) is None
+    assert rectifier_design("paper") is PaperRectifier and rectifier_design("local") is LocalRectifier
+    with pytest.raises(ValueError, match="no rectifier design"):
+        rectifier_design("lokal")
+    body = ToyBody()
+    mlp_keys = {f"rectifier.{k}" for k in Rectifier().state_dict()}  # the MLP's keys, as checkpoints hold them
+    layers = {f"rectifier.l{i}.{p}" for i in range(1, 6) for p in ("weight", "bias")}
+    assert mlp_keys == layers | {"rectifier.freq_alpha"}
+    for design, cls in (("paper", PaperRectifier), ("local", LocalRectifier)):
+        av = AvatarConfig(rectifier=design).build(body)
+        assert type(av.rectifier) is cls and isinstance(av.rectifier, Rectifier) and av.rectifier.name == design
+        keys = set(av.state_dict())
+        assert mlp_keys <= keys and not any(k.startswith("rectifier.") for k in keys - mlp_keys)
+        assert ({"pose_masks", "face_pose_group"} <= keys) == (design == "local")
+    assert PaperRectifier.reads_posed_mesh and not LocalRectifier.reads_posed_mesh
+    assert LocalRectifier.offsets_in_face_frame and not PaperRectifier.offsets_in_face_frame
+    assert LocalRectifier.needs_joint_weights and not PaperRectifier.needs_joint_weights
+    assert AvatarConfig(rectifier="paper").body_joint_weights(body) is None
+    assert torch.equal(AvatarConfig(rectifier="local").body_joint_weights(body), body.weights)
+    with pytest.raises(NotImplementedError):
+        RectifierDesign().encoded_position(None, None, None)
+
+
+@pytest.mark.parametrize("design", ["paper", "local"])
+@pytest.mark.parametrize("alpha", [6.0, 3.4])
+def test_design_reference_gives_the_avatars_offsets(design, alpha):
+    """Each design's plain reference (encoding, MLP on concatenated inputs, one pose row per Gaussian, frames
+    per Gaussian) against the offsets the avatar's fast path gives: values and gradients, float64."""
+    gen = torch.Generator().manual_seed(8)
+    body = ToyBody()
+    av = make_avatar(body, design, gen, placement="area", num_gaussians=200)
+    av.set_frequency_alpha(alpha)
+    v = posed_toy(body, gen).requires_grad_(True)
+    pose = (torch.randn(69, generator=gen, dtype=torch.float64) * 0.5).requires_grad_(True)
+    fast = av.forward_with_extras(v, pose)[1].offsets
+    ref = av.rectifier.reference(av, v, pose)
+    assert fast[0].abs().max() > 1e-3
+    for a, b in zip(fast, ref):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    weights = [torch.randn(t.shape, generator=gen, dtype=torch.float64) for t in fast]
+    inputs = [v, pose, av.means, *av.rectifier.parameters()]
+    g_fast = torch.autograd.grad(sum((o * w).sum() for o, w in zip(fast, weights)), inputs, allow_unused=True)
+    g_ref = torch.autograd.grad(sum((o * w).sum() for o, w in zip(ref, weights)), inputs, allow_unused=True)
+    for a, b in zip(g_fast, g_ref):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    assert g_fast[0] is not None  # paper: through the encoded mu*; local: through w R and w
+    # the raw outputs are what rectify() gives, brought to world units by the design
+    raw = av.rectify(v, pose)
+    rows = av.face_table(v)[av._face_slot()]
+    wR, w = rows[:, FaceTable.wR].reshape(-1, 3, 3), rows[:, FaceTable.w]
+    for a, b in zip(av.rectifier.world_offsets(raw, wR, w), fast):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

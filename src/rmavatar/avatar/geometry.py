@@ -1,4 +1,5 @@
-"""Triangle frames and quaternion helpers (quaternions are w, x, y, z, Hamilton product).
+"""Triangle frames, the posed mesh's face table and quaternion helpers (quaternions are w, x, y, z,
+Hamilton product).
 
 All functions are batched over leading dimensions and differentiable.
 """
@@ -32,6 +33,11 @@ class _UnitRows(torch.autograd.Function):
         u, n, nc = ctx.saved_tensors
         return unit_backward(g, u, n, nc, ctx.eps), None
 
+    @staticmethod
+    def reference(v: torch.Tensor, eps: float) -> torch.Tensor:
+        """The same under plain autograd (for tests)."""
+        return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(eps)
+
 
 def unit_rows(v: torch.Tensor, eps: float = _EPS) -> torch.Tensor:
     """Rows of ``v`` [...,k] scaled to unit length (a row shorter than ``eps`` is divided by ``eps``)."""
@@ -55,7 +61,8 @@ def triangle_frames(
         raise ValueError(f"vertices must be [B,V,3] or [V,3], got {tuple(vertices.shape)}")
     if faces.dim() != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must be [F,3], got {tuple(faces.shape)}")
-    # [B,F,3,3]: corner, xyz; index_select, whose backward (index_add) is twice as fast on CPU as indexing's
+    # [B,F,3,3]: corner, xyz; index_select, whose backward (index_add) is faster on CPU than indexing's
+    # (docs/model.md, "Measured choices")
     tri = vertices.index_select(-2, faces.reshape(-1)).unflatten(-2, faces.shape)
     e1, e2 = (tri[..., 1:, :] - tri[..., :1, :]).unbind(-2)  # both edges from v0 in one operation
     n1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
@@ -159,3 +166,27 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v [...,3] by quaternions q [...,4] (wxyz; normalised here)."""
     return (quat_to_rotmat(q) @ v.unsqueeze(-1)).squeeze(-1)
+
+
+class FaceTable:
+    """The columns of a posed mesh's face table (``Avatar.face_table``: one row per binding face, built by
+    :meth:`rows`), as slices; every reader of the table indexes it with these.
+
+    R: the frame R [3,3] row-major; wR: w R [3,3] row-major; M: the centroid [3]; w: the scale [1];
+    L: L(quat(R)) [4,4] row-major, the matrix of r -> quat(R) (x) r. With them mu* = w R mu + M and
+    r* = quat(R) (x) r are one batched matrix product each."""
+
+    R = slice(0, 9)
+    wR = slice(9, 18)
+    M = slice(18, 21)
+    w = slice(21, 22)
+    L = slice(22, 38)
+    WIDTH = 38  # the columns in all, in the order above
+
+    @staticmethod
+    def rows(R: torch.Tensor, w: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+        """The table [..., WIDTH] of frames R [...,3,3], scales w [...] and centroids M [...,3] (as from
+        :func:`triangle_frames`)."""
+        R9 = R.flatten(-2)
+        return torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
+                          quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)

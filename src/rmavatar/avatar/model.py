@@ -6,7 +6,8 @@ mu* = w R mu + M, r* = quat(R) (x) r, s* = w exp(log_scale); the rectifier then 
 pose-dependent offsets: mu' = mu* + d_mu, r' = r* (x) normalize(1 + d_r), s' = s* + d_s.
 The paper's rectifier reads the posed position and the whole pose and gives d_mu, d_s in world units;
 the "local" one reads the rest-pose position and the pose of the joints that skin the Gaussian's
-triangle, and gives d_mu = w R d, d_s = w d' from outputs d, d' in the triangle's frame.
+triangle, and gives d_mu = w R d, d_s = w d' from outputs d, d' in the triangle's frame. Each design is
+a class (``rectifier.PaperRectifier``, ``rectifier.LocalRectifier``) that the avatar asks.
 """
 
 from __future__ import annotations
@@ -19,18 +20,18 @@ import torch
 from torch import nn
 
 from rmavatar.avatar.compose import compose_gaussians
-from rmavatar.avatar.geometry import quat_left_matrix, rotmat_to_quat, triangle_frames
-from rmavatar.avatar.rectifier import POSE_DIM, Rectifier, window_alpha
+from rmavatar.avatar.geometry import FaceTable, triangle_frames
+from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
 from rmavatar.utils.config import check_fields
 from rmavatar.utils.device import host_scalar, set_host_scalar
 
-RECTIFIERS = ("paper", "local")  # model.rectifier designs (False: no rectifier)
+RECTIFIERS = tuple(DESIGNS)  # model.rectifier designs (False: no rectifier)
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = 0.5 + SH_C0 * dc (3DGS / gsplat convention)
 
+FACE_TABLE = FaceTable.WIDTH  # columns of Avatar.face_table (named by geometry.FaceTable)
 # The per-Gaussian parameters, in the order density control and checkpoints see them.
-FACE_TABLE = 38  # columns of Avatar.face_table: R 9, w R 9, M 3, w 1, L(quat(R)) 16
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
 
@@ -39,37 +40,42 @@ class AvatarConfig:
     """How the avatar is built; ``build(body)`` makes it (``TrainConfig.model`` is this config).
 
     ``placement``: "face" = one Gaussian per binding face (the paper); "area" = ``num_gaussians`` in
-    total, at least one per face, the rest given out by triangle area (Anny's faces differ ~100x in
+    total, at least one per face, the rest given out by triangle area (a body's faces can differ much in
     size), placed uniformly inside their triangle. ``body``/``gender`` name the body model the avatar is
     bound to (None: the dataset's own preset and gender)."""
 
-    body: str | None = None  # "anny", "anny:PRESET", "smpl:PATH"; None = the dataset's own preset/gender
-    gender: str | None = None  # None = the dataset's gender
+    # The body model the avatar is bound to: "anny", "anny:PRESET", "smpl:PATH"; None = the dataset's own.
+    body: str | None = None
+    gender: str | None = None  # the body model's gender; None = the dataset's
     sh_degree: int = 3  # highest SH degree stored (0..3)
+    # The rectifier design (rectifier.DESIGNS), the pose-conditioned MLP's offsets:
     # "paper": F(gamma(posed world position), all 69 pose values) -> world-space offsets (paper §3.3);
     # "local": F(gamma(rest-pose position), the pose of the joints skinning the Gaussian's triangle) ->
     # offsets in the triangle's frame, in units of its scale w, so they turn and grow with the body;
-    # False = the paper's "w/o GauRec": Gaussians fixed to their faces. True (older configs) = "paper".
-    rectifier: bool | str = "local"  # docs/model.md: measured better than "paper" on every metric
+    # False = the paper's "w/o GauRec": Gaussians fixed to their faces. (Older configs' true is read as
+    # "paper" by the migration chain, rmavatar.avatar.run.)
+    # "local" is the default for its results on held-out and new poses (docs/model.md).
+    rectifier: bool | str = "local"
     # "local": a face's Gaussians see joint j's pose when j's skinning weight on one of the face's
-    # corners exceeds this (Anny: ~1.6 of the 23 body joints per face).
+    # corners exceeds this.
     rectifier_mask_threshold: float = 0.01
-    num_freqs: int = 6
-    hidden: int = 128
-    # Arithmetic of the rectifier's hidden layers: "bfloat16" runs its GEMMs ~4x faster on CPUs with
-    # bf16 dot products (AVX512-BF16 / AMX) at ~3 significant digits; outputs and gradients stay float32.
+    num_freqs: int = 6  # frequency bands of the rectifier's positional encoding (6 * num_freqs channels)
+    hidden: int = 128  # width of the rectifier MLP's hidden layers
+    # Arithmetic of the rectifier's hidden layers: "float32", or "bfloat16" (faster on CPUs with bf16
+    # dot products, AVX512-BF16 / AMX, at about 3 significant digits; docs/model.md); outputs and
+    # gradients stay float32.
     rectifier_precision: str = "float32"
-    init_opacity: float = 0.1
-    init_color: tuple[float, float, float] = (0.5, 0.5, 0.5)
-    placement: str = "face"
+    init_opacity: float = 0.1  # every Gaussian's opacity at the start, in (0, 1)
+    init_color: tuple[float, float, float] = (0.5, 0.5, 0.5)  # every Gaussian's start RGB (unless build's init_colors)
+    placement: str = "face"  # where Gaussians start: "face" (one per binding face) or "area" (see above)
     num_gaussians: int | None = None  # total budget for placement="area"
     # The rectified scale s* + d_s is clamped to this (metres): d_s is additive and may overshoot.
     min_scale: float = 1e-6
     # Coarse-to-fine encoding window (HumanNeRF): closed until c2f_start, fully open at c2f_end,
     # both as fractions of the run (set_progress). Our choice; the paper gives no values.
-    coarse_to_fine: bool = True
-    c2f_start: float = 0.0
-    c2f_end: float = 0.5
+    coarse_to_fine: bool = True  # open the encoding's bands gradually (False: all open from the start)
+    c2f_start: float = 0.0  # fraction of the run at which the window starts to open
+    c2f_end: float = 0.5  # fraction of the run at which the window is fully open
     # SH bands switch on one at a time every sh_every_frac of the run (3DGS: 1000 of 50,000 iterations).
     sh_every_frac: float = 0.02
 
@@ -87,8 +93,6 @@ class AvatarConfig:
             raise UserError("model.placement 'area' needs model.num_gaussians (the total Gaussian budget)")
         if not 0.0 < self.init_opacity < 1.0:
             raise UserError(f"model.init_opacity must be in (0, 1), got {self.init_opacity}")
-        if self.rectifier is True:
-            self.rectifier = "paper"
         if self.rectifier is not False and self.rectifier not in RECTIFIERS:
             raise UserError(f"model.rectifier must be one of {', '.join(RECTIFIERS)} or false (no rectifier), "
                             f"not {self.rectifier!r}")
@@ -111,8 +115,20 @@ class AvatarConfig:
                       seed=seed, joint_weights=self.body_joint_weights(body))
 
     def body_joint_weights(self, body) -> torch.Tensor | None:
-        """What the avatar needs of ``body``'s skinning weights: [V,24] for the local rectifier, else None."""
-        return body.joint_weights() if self.rectifier == "local" else None
+        """What the avatar needs of ``body``'s skinning weights: [V,24] for a design that masks the pose
+        by them (the local rectifier), else None."""
+        design = rectifier_design(self.rectifier)
+        return body.joint_weights() if design is not None and design.needs_joint_weights else None
+
+
+@dataclass
+class AvatarExtras:
+    """What the training losses read of a posed avatar besides its Gaussians (``forward_with_extras``)."""
+
+    local_means: torch.Tensor  # [N,3] face-local positions (units of w): the position regulariser's input
+    local_log_scales: torch.Tensor  # [N,3] face-local log-scales: the scaling regulariser's input
+    # the rectifier's offsets (d_mu, d_s, d_r) in world units (the offset regulariser's input); None without one
+    offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -136,6 +152,62 @@ def area_counts(areas: torch.Tensor, total: int) -> torch.Tensor:
     return base + 1
 
 
+def _mesh_tensors(faces, binding_faces, v_template):
+    """faces [F,3] long, binding_faces [Fb] long (None: every face) and v_template [V,3] float32, checked."""
+    faces = torch.as_tensor(faces, dtype=torch.long)
+    v_template = torch.as_tensor(v_template, dtype=torch.float32)
+    if faces.dim() != 2 or faces.shape[1] != 3:
+        raise UserError(f"faces must be [F,3], got {tuple(faces.shape)}")
+    if v_template.dim() != 2 or v_template.shape[1] != 3:
+        raise UserError(f"v_template must be [V,3], got {tuple(v_template.shape)}")
+    if binding_faces is None:
+        binding_faces = torch.arange(faces.shape[0])
+    binding_faces = torch.as_tensor(binding_faces, dtype=torch.long)
+    if binding_faces.numel() == 0:
+        raise UserError("the body model has no binding faces to attach Gaussians to")
+    return faces, binding_faces, v_template
+
+
+def _initial_layout(v_template, faces, binding_faces, config, seed):
+    """The Gaussians' faces [N], local means [N,3] and log-scales [N,3] at the start (``config.placement``)."""
+    bf = binding_faces
+    if config.placement == "face":
+        face_ids = bf.clone()
+        means = torch.zeros(bf.shape[0], 3)
+        log_scales = torch.zeros(bf.shape[0], 3)
+        return face_ids, means, log_scales
+    counts = area_counts(_triangle_areas(v_template, faces[bf]), int(config.num_gaussians))
+    face_ids = torch.repeat_interleave(bf, counts)
+    gen = torch.Generator().manual_seed(seed)
+    # Uniform points in the triangle (square-root barycentric sampling), then to local coordinates.
+    u = torch.rand(face_ids.shape[0], 2, generator=gen)
+    su = u[:, 0].sqrt()
+    bary = torch.stack((1 - su, su * (1 - u[:, 1]), su * u[:, 1]), dim=-1)
+    # Faces with a single Gaussian keep it at the centroid, as the paper initialises.
+    single = (counts == 1).repeat_interleave(counts)
+    bary[single] = 1.0 / 3.0
+    tri = v_template[faces[face_ids]]  # [N,3,3]
+    points = (bary.unsqueeze(-1) * tri).sum(-2)
+    R, w, M = triangle_frames(v_template, faces[face_ids])
+    means = ((points - M).unsqueeze(-2) @ R).squeeze(-2) / w.clamp_min(1e-12).unsqueeze(-1)
+    # k Gaussians share a triangle: each covers ~1/k of its area.
+    log_scales = (-0.5 * torch.log(counts.float())).repeat_interleave(counts).unsqueeze(-1).expand(-1, 3)
+    return face_ids, means, log_scales.contiguous()
+
+
+def _initial_colors(init_colors, default, face_ids, num_faces):
+    """The Gaussians' start colours [N,3]: ``init_colors`` [3] or [F,3] (per face), or ``default`` [3]."""
+    n = face_ids.shape[0]
+    if init_colors is None:
+        return torch.tensor(default, dtype=torch.float32).expand(n, 3).clone()
+    c = torch.as_tensor(init_colors, dtype=torch.float32)
+    if c.shape == (3,):
+        return c.expand(n, 3).clone()
+    if c.shape == (num_faces, 3):
+        return c[face_ids].clone()
+    raise UserError(f"init_colors must be [3] or [F={num_faces},3] (per face), got {tuple(c.shape)}")
+
+
 class Avatar(nn.Module):
     """Gaussians embedded in the triangles of a body mesh, plus the rectification MLP.
 
@@ -150,6 +222,7 @@ class Avatar(nn.Module):
     active_sh_degree (grows during training like 3DGS). With the local rectifier (``joint_weights``
     [V,24], the body's skinning weights per SMPL joint, required): pose_masks [U,69] (the distinct
     sets of pose values faces see) and face_pose_group [F] (every face's row of pose_masks).
+    ``rectifier``: the design (a ``rectifier.RectifierDesign``, which holds the MLP) or None.
     """
 
     def __init__(
@@ -165,17 +238,13 @@ class Avatar(nn.Module):
         super().__init__()
         config = (config or AvatarConfig()).validate()
         self.config = config
-        faces = torch.as_tensor(faces, dtype=torch.long)
-        v_template = torch.as_tensor(v_template, dtype=torch.float32)
-        if faces.dim() != 2 or faces.shape[1] != 3:
-            raise UserError(f"faces must be [F,3], got {tuple(faces.shape)}")
-        if v_template.dim() != 2 or v_template.shape[1] != 3:
-            raise UserError(f"v_template must be [V,3], got {tuple(v_template.shape)}")
-        if binding_faces is None:
-            binding_faces = torch.arange(faces.shape[0])
-        binding_faces = torch.as_tensor(binding_faces, dtype=torch.long)
-        if binding_faces.numel() == 0:
-            raise UserError("the body model has no binding faces to attach Gaussians to")
+        faces, binding_faces, v_template = _mesh_tensors(faces, binding_faces, v_template)
+        self._init_mesh(faces, binding_faces, v_template)
+        self._init_gaussians(v_template, config, init_colors, seed)
+        self._init_rectifier(config, joint_weights)
+
+    def _init_mesh(self, faces, binding_faces, v_template):
+        """The mesh buffers: the faces, the binding faces and what the rest mesh gives."""
         self.num_vertices = v_template.shape[0]
         self.register_buffer("faces", faces)
         self.register_buffer("binding_faces", binding_faces)
@@ -191,10 +260,12 @@ class Avatar(nn.Module):
         self.register_buffer("rest_scales", w, persistent=False)
         self.register_buffer("rest_centroids", M, persistent=False)
 
-        face_ids, means, log_scales = self._initial_layout(v_template, config, seed)
+    def _init_gaussians(self, v_template, config, init_colors, seed):
+        """The Gaussians' faces and parameters at the start (GAUSSIAN_PARAMS)."""
+        face_ids, means, log_scales = _initial_layout(v_template, self.faces, self.binding_faces, config, seed)
         n = face_ids.shape[0]
         k = (config.sh_degree + 1) ** 2
-        colors = self._initial_colors(init_colors, face_ids, faces.shape[0])
+        colors = _initial_colors(init_colors, config.init_color, face_ids, self.faces.shape[0])
         self.register_buffer("face_ids", face_ids)
         self.means = nn.Parameter(means)
         self.quats = nn.Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1))
@@ -203,23 +274,19 @@ class Avatar(nn.Module):
         self.opacity_logits = nn.Parameter(torch.full((n,), math.log(p / (1 - p))))
         self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).unsqueeze(1))
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
-        self.rectifier = Rectifier(config.num_freqs, config.hidden, precision=config.rectifier_precision) if config.rectifier else None
-        if config.rectifier == "local":
-            self._init_local(v_template, joint_weights, config.rectifier_mask_threshold)
 
-    def _init_local(self, v_template, joint_weights, threshold):
-        """The local rectifier's pose masks (which pose values each face's Gaussians see)."""
-        if joint_weights is None:
-            raise UserError("model.rectifier 'local' needs the body model's skinning weights (joint_weights)")
-        jw = torch.as_tensor(joint_weights, dtype=torch.float32)
-        if jw.shape != (self.num_vertices, 24):
-            raise UserError(f"joint_weights must be [V={self.num_vertices},24], got {tuple(jw.shape)}")
-        # Joint 0 is the global orientation, not part of the 69 pose values (and a local rectifier
-        # must not depend on which way the body faces).
-        seen = jw.to(self.faces.device)[self.faces].amax(1)[:, 1:] > threshold  # [F,23]
-        masks, group = torch.unique(seen, dim=0, return_inverse=True)
-        self.register_buffer("pose_masks", masks.repeat_interleave(3, dim=1).float())
-        self.register_buffer("face_pose_group", group)
+    def _init_rectifier(self, config, joint_weights):
+        """The rectifier design that ``config.rectifier`` names (None: none), and its pose masks."""
+        design = rectifier_design(config.rectifier)
+        self.rectifier = None if design is None else design(config.num_freqs, config.hidden,
+                                                            precision=config.rectifier_precision)
+        # Which pose values each face's Gaussians see, where the design masks the pose (buffers of the
+        # avatar, so checkpoints keep them under "pose_masks" / "face_pose_group").
+        masks = None if design is None else self.rectifier.make_pose_masks(
+            self.faces, joint_weights, config.rectifier_mask_threshold, self.num_vertices)
+        if masks is not None:
+            self.register_buffer("pose_masks", masks[0])
+            self.register_buffer("face_pose_group", masks[1])
 
     # ------------------------------------------------------------------ construction
     def checkpoint_state(self) -> dict:
@@ -249,42 +316,6 @@ class Avatar(nn.Module):
         except RuntimeError as exc:
             raise UserError(f"{where}: the avatar state does not fit this body model: {exc}") from None
         return avatar
-
-    def _initial_layout(self, v_template, config, seed):
-        bf = self.binding_faces
-        if config.placement == "face":
-            face_ids = bf.clone()
-            means = torch.zeros(bf.shape[0], 3)
-            log_scales = torch.zeros(bf.shape[0], 3)
-            return face_ids, means, log_scales
-        counts = area_counts(_triangle_areas(v_template, self.faces[bf]), int(config.num_gaussians))
-        face_ids = torch.repeat_interleave(bf, counts)
-        gen = torch.Generator().manual_seed(seed)
-        # Uniform points in the triangle (square-root barycentric sampling), then to local coordinates.
-        u = torch.rand(face_ids.shape[0], 2, generator=gen)
-        su = u[:, 0].sqrt()
-        bary = torch.stack((1 - su, su * (1 - u[:, 1]), su * u[:, 1]), dim=-1)
-        # Faces with a single Gaussian keep it at the centroid, as the paper initialises.
-        single = (counts == 1).repeat_interleave(counts)
-        bary[single] = 1.0 / 3.0
-        tri = v_template[self.faces[face_ids]]  # [N,3,3]
-        points = (bary.unsqueeze(-1) * tri).sum(-2)
-        R, w, M = triangle_frames(v_template, self.faces[face_ids])
-        means = ((points - M).unsqueeze(-2) @ R).squeeze(-2) / w.clamp_min(1e-12).unsqueeze(-1)
-        # k Gaussians share a triangle: each covers ~1/k of its area.
-        log_scales = (-0.5 * torch.log(counts.float())).repeat_interleave(counts).unsqueeze(-1).expand(-1, 3)
-        return face_ids, means, log_scales.contiguous()
-
-    def _initial_colors(self, init_colors, face_ids, num_faces):
-        n = face_ids.shape[0]
-        if init_colors is None:
-            return torch.tensor(self.config.init_color, dtype=torch.float32).expand(n, 3).clone()
-        c = torch.as_tensor(init_colors, dtype=torch.float32)
-        if c.shape == (3,):
-            return c.expand(n, 3).clone()
-        if c.shape == (num_faces, 3):
-            return c[face_ids].clone()
-        raise UserError(f"init_colors must be [3] or [F={num_faces},3] (per face), got {tuple(c.shape)}")
 
     # ------------------------------------------------------------------ properties
     @property
@@ -318,8 +349,8 @@ class Avatar(nn.Module):
     def _posed_means(self, g: torch.Tensor) -> torch.Tensor:
         """mu* = w R mu + M [N,3] alone, from the face rows ``g`` of :meth:`_posed` (the paper's
         rectifier reads it)."""
-        wR = g[:, 9:18].unflatten(-1, (3, 3))
-        return torch.baddbmm(g[:, 18:21].unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
+        wR = g[:, FaceTable.wR].unflatten(-1, (3, 3))
+        return torch.baddbmm(g[:, FaceTable.M].unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
 
     def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
         """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
@@ -341,8 +372,9 @@ class Avatar(nn.Module):
 
     def face_table(self, vertices: torch.Tensor) -> torch.Tensor:
         """The frames of the binding faces of posed meshes ``vertices`` [V,3] or [B,V,3]:
-        [Fb, FACE_TABLE] or [B, Fb, FACE_TABLE], per face R (9), w R (9), M (3), w (1) and L(quat(R)) (16;
-        the matrix of r -> quat(R) (x) r), so that mu* and r* are one batched matrix product each.
+        [Fb, FACE_TABLE] or [B, Fb, FACE_TABLE], per face the columns of :class:`FaceTable`: R, w R, M, w
+        and L(quat(R)) (the matrix of r -> quat(R) (x) r), so that mu* and r* are one batched matrix
+        product each.
 
         It depends on the mesh only, not on the Gaussians: training, which poses the same frames again
         and again, computes it once per frame and passes it to :meth:`forward` as ``table``."""
@@ -353,12 +385,10 @@ class Avatar(nn.Module):
             )
         # Frames for the faces in use only (binding faces; far fewer than N after densification).
         R, w, M = triangle_frames(vertices.to(self.means.dtype), self.faces[self.binding_faces])
-        R9 = R.flatten(-2)
-        return torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
-                          quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
+        return FaceTable.rows(R, w, M)
 
     def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
-        """Every Gaussian's row g [N,38] of the posed mesh's face table (``compose_gaussians`` reads it)
+        """Every Gaussian's row g [N,FACE_TABLE] of the posed mesh's face table (``compose_gaussians`` reads it)
         and its index into the binding faces, slot [N]. ``table``: :meth:`face_table` of ``vertices``,
         when the caller has it (then ``vertices`` is not read)."""
         if table is None:
@@ -370,7 +400,9 @@ class Avatar(nn.Module):
             raise ValueError(f"table must be [{self.binding_faces.shape[0]},{FACE_TABLE}] (face_table of one "
                              f"mesh), got {tuple(table.shape)}")
         slot = self._face_slot()
-        g = table.index_select(0, slot)  # its backward (pose refinement, fitting) is index_add: 2x faster on CPU
+        # index_select: its backward (pose refinement, fitting) is an index_add, faster on CPU than
+        # indexing's (docs/model.md, "Measured choices")
+        g = table.index_select(0, slot)
         return g, slot
 
     def _face_slot(self) -> torch.Tensor:
@@ -399,60 +431,52 @@ class Avatar(nn.Module):
         paper's; what :meth:`forward` takes as ``rectified``."""
         if self.rectifier is None:
             raise ValueError("this avatar has no rectifier")
-        if self.config.rectifier == "local":
-            return self._rectify(None, self._face_slot(), body_pose)
-        g, slot = self._posed(vertices)
-        return self._rectify(self._posed_means(g), slot, body_pose)
+        if self.rectifier.reads_posed_mesh:
+            g, slot = self._posed(vertices)
+        else:  # the design's input does not depend on the posed mesh: it is not posed
+            g, slot = None, self._face_slot()
+        return self._rectify(g, slot, body_pose)
 
-    def _rectify(self, mu: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
+    def _rectify(self, g: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
+        """The design's raw outputs for face rows ``g`` (None where the design does not read the posed
+        mesh) and ``slot`` as from :meth:`_posed`, after checking ``body_pose``."""
         if body_pose is None:
             raise ValueError("this avatar has a rectifier: forward needs body_pose [69]")
         body_pose = torch.as_tensor(body_pose, dtype=self.means.dtype, device=self.means.device).reshape(-1)
         if body_pose.numel() != POSE_DIM:
             raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
-        if self.config.rectifier == "local":
-            group = self._local_inputs(slot)[2]
-            return self.rectifier(self.rest_means(slot), body_pose, self.pose_masks, group)
-        return self.rectifier(mu, body_pose)
+        return self.rectifier.rectify(self, g, slot, body_pose)
 
     def forward(self, vertices: torch.Tensor | None, body_pose: torch.Tensor | None = None,
                 rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
                 table: torch.Tensor | None = None) -> GaussianSet:
-        """World-space Gaussians for a posed mesh. vertices [V,3], body_pose [69] (the rectifier's
-        pose input; may be None only without a rectifier, or with ``rectified``); rectified: the
-        rectifier's raw outputs from :meth:`rectify` to use instead of running it (test-time pose
-        fitting holds them fixed between refreshes); table: :meth:`face_table` of ``vertices`` (training
-        passes each frame's, computed once; ``vertices`` may then be None)."""
+        """World-space Gaussians for a posed mesh (:meth:`forward_with_extras` without the extras)."""
+        return self.forward_with_extras(vertices, body_pose, rectified, table)[0]
+
+    def forward_with_extras(self, vertices: torch.Tensor | None, body_pose: torch.Tensor | None = None,
+                            rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+                            table: torch.Tensor | None = None) -> tuple[GaussianSet, "AvatarExtras"]:
+        """World-space Gaussians for a posed mesh, and what the training losses read besides them.
+        vertices [V,3], body_pose [69] (the rectifier's pose input; may be None only without a
+        rectifier, or with ``rectified``); rectified: the rectifier's raw outputs from :meth:`rectify` to
+        use instead of running it (test-time pose fitting holds them fixed between refreshes); table:
+        :meth:`face_table` of ``vertices`` (training passes each frame's, computed once; ``vertices`` may
+        then be None)."""
         g, slot = self._posed(vertices, table)
         raw = None
         if self.rectifier is not None:
-            if rectified is not None:
-                raw = rectified
-            elif self.config.rectifier == "local":
-                raw = self._rectify(None, slot, body_pose)
-            else:
-                raw = self._rectify(self._posed_means(g), slot, body_pose)
-        # the local design's offsets are in the triangle's frame (units of w): they turn and scale with it
+            raw = rectified if rectified is not None else self._rectify(g, slot, body_pose)
+        # the design says in which frame its offsets live (compose_gaussians brings them to world units)
         mu, r, s, frames, offsets = compose_gaussians(g, self.means, self.quats, self.log_scales, raw,
-                                                      self.config.rectifier or None, self.config.min_scale)
+                                                      self.rectifier, self.config.min_scale)
         deg = host_scalar(self, "active_sh_degree", int)
         k = (deg + 1) ** 2
         # all stored bands on: the whole tensor, not a slice (whose backward would copy into zeros)
         rest = self.sh_rest if k - 1 == self.sh_rest.shape[1] else self.sh_rest[:, : k - 1]
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, rest), dim=1)
-        return GaussianSet(
-            means=mu,
-            quats=r,
-            scales=s,
-            opacities=torch.sigmoid(self.opacity_logits),
-            sh=sh,
-            sh_degree=deg,
-            offsets=offsets,
-            face_ids=self.face_ids,
-            local_means=self.means,
-            local_log_scales=self.log_scales,
-            frames=frames,
-        )
+        gs = GaussianSet(means=mu, quats=r, scales=s, opacities=torch.sigmoid(self.opacity_logits), sh=sh,
+                         sh_degree=deg, frames=frames)
+        return gs, AvatarExtras(local_means=self.means, local_log_scales=self.log_scales, offsets=offsets)
 
     @torch.no_grad()
     def world_gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:

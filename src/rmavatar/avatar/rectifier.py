@@ -5,7 +5,13 @@ The pose part of the first layer depends only on the pose (the paper's design: o
 Gaussian) or on the pose and a Gaussian's pose-mask group (the "local" design: few distinct masks), so
 it is one small matrix product per frame, [U,69] x [69,128], added to that layer's bias row by row;
 the [N,105] and [N,164] concatenations are never built; forward and backward are one fused autograd
-Function.
+Function. Every fused Function here has a ``reference`` beside it: the same computation under plain
+autograd, which the tests compare it with (values and gradients).
+
+The designs (``model.rectifier``) are subclasses of :class:`Rectifier` that share its MLP (and its
+state_dict keys) and decide what it is given and what its outputs mean: :class:`PaperRectifier` (the
+posed world position, the whole pose, offsets in world units) and :class:`LocalRectifier` (the rest-pose
+position, each face's masked pose, offsets in the triangle's frame in units of w).
 """
 
 from __future__ import annotations
@@ -16,10 +22,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rmavatar.avatar.geometry import triangle_frames
+from rmavatar.utils import UserError
 from rmavatar.utils.device import constant, host_scalar, set_host_scalar
 
 POSE_DIM = 69
-OUT_DIM = 10  # d_mu 3, d_s 3, d_r 4
+OUT_WIDTHS = (3, 3, 4)  # the output's columns: d_mu, d_s, d_r
+OUT_DIM = sum(OUT_WIDTHS)
 
 
 def window_values(num_freqs: int, alpha: float) -> tuple[float, ...]:
@@ -78,6 +87,14 @@ class _Encoding(torch.autograd.Function):
         band_sum = constant(rows, s.dtype, s.device)
         return dxb @ band_sum, None, None
 
+    @staticmethod
+    def reference(x: torch.Tensor, num_freqs: int, weights: torch.Tensor | None) -> torch.Tensor:
+        """The same under plain autograd: sin and cos of x scaled by 2^k, times the column weights."""
+        freqs = 2.0 ** torch.arange(num_freqs, dtype=x.dtype, device=x.device)
+        xb = (x.unsqueeze(-2) * freqs.unsqueeze(-1)).flatten(-2)
+        gamma = torch.cat((torch.sin(xb), torch.cos(xb)), dim=-1)
+        return gamma if weights is None else gamma * weights
+
 
 _threshold_backward = torch.ops.aten.threshold_backward
 
@@ -88,7 +105,7 @@ class _FusedMLP(torch.autograd.Function):
     Compared with autograd over nn.Linear/ReLU it saves the bias-broadcast and zero-fill passes, keeps
     only the four post-ReLU activations (the ReLU masks are read off them), and never builds the
     concatenated inputs. Hidden layers run in ``dtype`` (float32, or bfloat16 where the CPU has fast
-    bf16 dot products: ~4x faster GEMMs); the output layer and all returned gradients are float32.
+    bf16 dot products; docs/model.md); the output layer and all returned gradients are float32.
     """
 
     @staticmethod
@@ -143,16 +160,28 @@ class _FusedMLP(torch.autograd.Function):
         dw1, db1, dw2, db2, dw3, db3, dw4, db4 = (t.to(f32) for t in grads)
         return dgamma, dpose, None, dw1, db1, dw2, db2, dw3, db3, dw4, db4, dw5, db5, None
 
+    @staticmethod
+    def reference(gamma, pose, group, w1, b1, w2, b2, w3, b3, w4, b4, w5, b5, dtype=None) -> torch.Tensor:
+        """The same MLP under plain autograd, on the concatenated [N,105] and [N,164] inputs, in the
+        inputs' dtype (``dtype`` is not used: a bfloat16 run is compared with this within tolerances)."""
+        rows = pose.expand(gamma.shape[0], -1) if group is None else pose[group]
+        h = F.relu(F.linear(torch.cat((gamma, rows.to(gamma.dtype)), -1), w1, b1))
+        h = F.relu(F.linear(h, w2, b2))
+        h = F.relu(F.linear(torch.cat((h, gamma), -1), w3, b3))
+        h = F.relu(F.linear(h, w4, b4))
+        return F.linear(h, w5, b5)
+
 
 class Rectifier(nn.Module):
     """Pose-conditioned offsets of the Gaussians.
 
     forward(x [N,3], body_pose [69]) -> (d_mu [N,3], d_s [N,3], d_r [N,4]); d_r is an offset from the
-    identity quaternion. x is what the avatar encodes (the posed position mu* in the paper's design,
-    the rest-pose position in the local one; the avatar also decides in which frame the outputs live).
-    With ``pose_masks`` [U,69] and ``group`` [N] (index into its rows), Gaussian i sees the pose
-    ``body_pose * pose_masks[group[i]]`` instead of the whole pose. The last layer starts near zero,
-    so the rectifier starts as (almost exactly) the identity. No dropout: evaluation is deterministic.
+    identity quaternion. x is the position the design encodes (the posed position mu* in the paper's
+    design, the rest-pose position in the local one; the design also decides in which frame the outputs
+    live: :class:`RectifierDesign`). With ``pose_masks`` [U,69] and ``group`` [N] (index into its rows),
+    Gaussian i sees the pose ``body_pose * pose_masks[group[i]]`` instead of the whole pose. The last
+    layer starts near zero, so the rectifier starts as (almost exactly) the identity. No dropout:
+    evaluation is deterministic.
     """
 
     def __init__(self, num_freqs: int = 6, hidden: int = 128, pose_dim: int = POSE_DIM, precision: str = "float32"):
@@ -207,31 +236,180 @@ class Rectifier(nn.Module):
                              f"{tuple(pose_masks.shape)} and {tuple(group.shape)}")
         return pose * pose_masks.to(x.dtype)
 
+    def _weights(self) -> tuple[torch.Tensor, ...]:
+        """The layers' weights and biases in _FusedMLP's order (w1, b1, ..., w5, b5)."""
+        return (self.l1.weight, self.l1.bias, self.l2.weight, self.l2.bias, self.l3.weight, self.l3.bias,
+                self.l4.weight, self.l4.bias, self.l5.weight, self.l5.bias)
+
     def forward(
         self, x: torch.Tensor, body_pose: torch.Tensor, pose_masks: torch.Tensor | None = None,
         group: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         pose = self._pose_rows(x, body_pose, pose_masks, group)
         gamma = self.encode(x)  # [N,36]
-        out = _FusedMLP.apply(
-            gamma, pose, group,
-            self.l1.weight, self.l1.bias, self.l2.weight, self.l2.bias, self.l3.weight, self.l3.bias,
-            self.l4.weight, self.l4.bias, self.l5.weight, self.l5.bias,
-            self.compute_dtype if gamma.dtype == torch.float32 else gamma.dtype,
-        )
-        return out.split((3, 3, 4), dim=1)  # one backward operation (a cat), not three slice ones
+        out = _FusedMLP.apply(gamma, pose, group, *self._weights(),
+                              self.compute_dtype if gamma.dtype == torch.float32 else gamma.dtype)
+        return out.split(OUT_WIDTHS, dim=1)  # one backward operation (a cat), not three slice ones
 
     def reference_forward(
         self, x: torch.Tensor, body_pose: torch.Tensor, pose_masks: torch.Tensor | None = None,
         group: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The same MLP written plainly with the concatenated [N,105] / [N,164] inputs (for tests)."""
+        """The same MLP written plainly with the concatenated [N,105] / [N,164] inputs
+        (:meth:`_FusedMLP.reference`; the encoding is :meth:`encode`'s). ``bench speed`` times it."""
         pose = self._pose_rows(x, body_pose, pose_masks, group)
-        gamma = self.encode(x)
-        pose = pose.expand(gamma.shape[0], -1) if group is None else pose[group]
-        x = F.relu(self.l1(torch.cat((gamma, pose), -1)))
-        x = F.relu(self.l2(x))
-        x = F.relu(self.l3(torch.cat((x, gamma), -1)))
-        x = F.relu(self.l4(x))
-        out = self.l5(x)
-        return out[:, 0:3], out[:, 3:6], out[:, 6:10]
+        out = _FusedMLP.reference(self.encode(x), pose, group, *self._weights())
+        return out.split(OUT_WIDTHS, dim=1)
+
+
+# ----------------------------------------------------------------------------------------------- the designs
+class RectifierDesign(Rectifier):
+    """A rectifier design (``model.rectifier``): the shared MLP, and what the design decides around it.
+
+    A design answers three questions, for the avatar that holds it (as ``avatar.rectifier``):
+
+    - what it encodes: :meth:`encoded_position` (``reads_posed_mesh``: whether that needs the posed mesh);
+    - which pose values each Gaussian sees: :meth:`pose_groups` (the pose masks are built once, with
+      the avatar, by :meth:`make_pose_masks` from the body's skinning weights when ``needs_joint_weights``);
+    - in which frame its offsets live: ``offsets_in_face_frame`` (read by ``compose_gaussians``, which
+      fuses the conversion) and :meth:`world_offsets` (the conversion written plainly).
+
+    :meth:`rectify` runs the fast path; :meth:`reference` is the same design under plain autograd.
+    """
+
+    name = ""  # the model.rectifier value that selects the design
+    reads_posed_mesh = False  # True: the encoded position depends on the posed mesh
+    needs_joint_weights = False  # True: Gaussians see their face's masked pose, made from skinning weights
+    offsets_in_face_frame = False  # True: d_mu, d_s in the triangle's frame, units of w; False: world units
+
+    def encoded_position(self, avatar, g: torch.Tensor | None, slot: torch.Tensor) -> torch.Tensor:
+        """The position the MLP encodes [N,3], from the avatar's Gaussians; ``g``: their rows of the posed
+        mesh's face table (``Avatar._posed``; None when ``reads_posed_mesh`` is False); ``slot``: their
+        index into the binding faces."""
+        raise NotImplementedError
+
+    def pose_groups(self, avatar, slot: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(pose_masks [U,69], group [N]): Gaussian i sees ``body_pose * pose_masks[group[i]]``;
+        (None, None): every Gaussian sees the whole pose."""
+        raise NotImplementedError
+
+    def make_pose_masks(self, faces: torch.Tensor, joint_weights: torch.Tensor | None, threshold: float,
+                        num_vertices: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The avatar's pose-mask buffers (pose_masks [U,69], face_pose_group [F]) for the mesh ``faces``
+        [F,3], or None when the design sees the whole pose."""
+        return None
+
+    def world_offsets(self, offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor], wR: torch.Tensor,
+                      w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The MLP's outputs (d_mu, d_s, d_r) in world units, given each Gaussian's posed w R [N,3,3] and
+        w [N,1] (plain autograd; ``compose_gaussians`` does the same fused)."""
+        raise NotImplementedError
+
+    def rectify(self, avatar, g: torch.Tensor | None, slot: torch.Tensor,
+                body_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The MLP's raw outputs (d_mu, d_s, d_r) for the avatar's Gaussians (``g``, ``slot`` as in
+        :meth:`encoded_position`; ``body_pose`` [69] checked and in the avatar's dtype)."""
+        pose_masks, group = self.pose_groups(avatar, slot)
+        return self(self.encoded_position(avatar, g, slot), body_pose, pose_masks, group)
+
+    # ---------------------------------------------------------------- the plain reference (for tests)
+    def reference(self, avatar, vertices: torch.Tensor,
+                  body_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The offsets this design adds to the avatar's Gaussians on the posed mesh ``vertices`` [V,3],
+        in world units (what ``Avatar.forward_with_extras`` returns as ``extras.offsets``), written
+        plainly: the encoding and the MLP under autograd on concatenated inputs, one pose row per
+        Gaussian, each Gaussian's frame from :func:`triangle_frames` of its own face."""
+        R, w, M = triangle_frames(vertices, avatar.faces[avatar.face_ids])  # [N,...]: per Gaussian
+        x = self._reference_position(avatar, R, w, M)
+        pose = self._reference_pose(avatar, body_pose.reshape(1, self.pose_dim).to(x.dtype))  # [N,69]
+        alpha = host_scalar(self, "freq_alpha")
+        window = None if alpha >= self.num_freqs else self._band_weights(alpha, x)
+        out = _FusedMLP.reference(_Encoding.reference(x, self.num_freqs, window), pose, None, *self._weights())
+        return self.world_offsets(out.split(OUT_WIDTHS, dim=1), w[:, None, None] * R, w.unsqueeze(-1))
+
+    def _reference_position(self, avatar, R, w, M) -> torch.Tensor:
+        """:meth:`encoded_position` written plainly, given every Gaussian's posed frame R, w, M."""
+        raise NotImplementedError
+
+    def _reference_pose(self, avatar, body_pose: torch.Tensor) -> torch.Tensor:
+        """The pose every Gaussian sees [N,69], from ``body_pose`` [1,69]."""
+        raise NotImplementedError
+
+
+class PaperRectifier(RectifierDesign):
+    """The paper's design (§3.3): F(gamma(mu*), P) with mu* = w R mu + M the posed world position and P
+    all 69 pose values; d_mu and d_s are world offsets (metres), added to mu* and s*."""
+
+    name = "paper"
+    reads_posed_mesh = True
+
+    def encoded_position(self, avatar, g, slot):
+        return avatar._posed_means(g)
+
+    def pose_groups(self, avatar, slot):
+        return None, None
+
+    def world_offsets(self, offsets, wR, w):
+        return offsets
+
+    def _reference_position(self, avatar, R, w, M):
+        return w.unsqueeze(-1) * (R @ avatar.means.unsqueeze(-1)).squeeze(-1) + M
+
+    def _reference_pose(self, avatar, body_pose):
+        return body_pose.expand(avatar.means.shape[0], -1)
+
+
+class LocalRectifier(RectifierDesign):
+    """The local design (docs/model.md): F(gamma(mu_rest), P * m_f) with mu_rest = w0 R0 mu + M0 the
+    Gaussian's position on the rest mesh and m_f its face's pose mask (the joints that skin the face's
+    corners); the outputs (d, d', d_r) live in the triangle's frame in units of w: d_mu = w R d,
+    d_s = w d', so the offsets turn and grow with the body."""
+
+    name = "local"
+    needs_joint_weights = True
+    offsets_in_face_frame = True
+
+    def encoded_position(self, avatar, g, slot):
+        return avatar.rest_means(slot)
+
+    def pose_groups(self, avatar, slot):
+        return avatar.pose_masks, avatar._local_inputs(slot)[2]
+
+    def make_pose_masks(self, faces, joint_weights, threshold, num_vertices):
+        """A face sees joint j's three pose values when j's skinning weight on one of its corners
+        exceeds ``threshold``; the faces' distinct masks are the rows of pose_masks."""
+        if joint_weights is None:
+            raise UserError("model.rectifier 'local' needs the body model's skinning weights (joint_weights)")
+        jw = torch.as_tensor(joint_weights, dtype=torch.float32)
+        if jw.shape != (num_vertices, 24):
+            raise UserError(f"joint_weights must be [V={num_vertices},24], got {tuple(jw.shape)}")
+        # Joint 0 is the global orientation, not part of the 69 pose values (and a local rectifier
+        # must not depend on which way the body faces).
+        seen = jw.to(faces.device)[faces].amax(1)[:, 1:] > threshold  # [F,23]
+        masks, group = torch.unique(seen, dim=0, return_inverse=True)
+        return masks.repeat_interleave(3, dim=1).float(), group
+
+    def world_offsets(self, offsets, wR, w):
+        d_mu, d_s, d_r = offsets
+        return (wR @ d_mu.unsqueeze(-1)).squeeze(-1), w * d_s, d_r
+
+    def _reference_position(self, avatar, R, w, M):
+        slot = avatar._face_slot()
+        rest_mu = (avatar.rest_frames[slot] @ avatar.means.unsqueeze(-1)).squeeze(-1)
+        return avatar.rest_scales[slot].unsqueeze(-1) * rest_mu + avatar.rest_centroids[slot]
+
+    def _reference_pose(self, avatar, body_pose):
+        return body_pose * avatar.pose_masks[avatar.face_pose_group[avatar.face_ids]]
+
+
+# model.rectifier's values -> their designs
+DESIGNS: dict[str, type[RectifierDesign]] = {d.name: d for d in (PaperRectifier, LocalRectifier)}
+
+
+def rectifier_design(name: str | bool | None) -> type[RectifierDesign] | None:
+    """The design class that ``model.rectifier`` names (None for False / None: no rectifier)."""
+    if name is None or name is False:
+        return None
+    if name not in DESIGNS:
+        raise ValueError(f"no rectifier design {name!r} (designs: {', '.join(DESIGNS)})")
+    return DESIGNS[name]

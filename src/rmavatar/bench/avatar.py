@@ -37,10 +37,10 @@ def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats
     walls, cpus = [], []
     for i in range(warmup + repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        g = avatar(vertices, body_pose)
+        g, extras = avatar.forward_with_extras(vertices, body_pose)
         loss = g.means.sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.sum()
-        if g.offsets is not None:
-            loss = loss + sum(o.square().sum() for o in g.offsets)
+        if extras.offsets is not None:
+            loss = loss + sum(o.square().sum() for o in extras.offsets)
         loss.backward()
         if i >= warmup:
             walls.append(time.perf_counter() - t0)

@@ -12,8 +12,10 @@ as well.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+import torch
 
 
 @dataclass(frozen=True)
@@ -66,3 +68,13 @@ class Camera:
         cam = p @ self.viewmat[:3, :3].T.astype(np.float64) + self.viewmat[:3, 3]
         uvw = cam @ self.K.T.astype(np.float64)
         return (uvw[:, :2] / uvw[:, 2:3]).astype(np.float32)
+
+
+class CameraTensors(NamedTuple):
+    """A camera as tensors on a device, for code that draws the same cameras again and again (a training
+    step): viewmat [4,4] and K [3,3] as in :class:`Camera`, width and height in pixels."""
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int

@@ -25,10 +25,6 @@ class GaussianSet:
     expressed in the axes of ``frames`` [N,3,3] (each Gaussian's local -> world rotation; None means
     world axes, as in a 3DGS file): :meth:`colors` evaluates them along each Gaussian's local view
     direction; :meth:`world_sh` gives them in world axes for standard 3DGS files.
-
-    An avatar also fills in what its losses need: offsets = (d_mu [N,3], d_s [N,3], d_r [N,4]) of the
-    rectifier (None without one), local_means [N,3] / local_log_scales [N,3] (its face-local
-    parameters, for the position and scaling regularisers) and face_ids [N] (the parent faces).
     """
 
     means: torch.Tensor
@@ -38,10 +34,6 @@ class GaussianSet:
     sh: torch.Tensor
     sh_degree: int
     frames: torch.Tensor | None = field(default=None, repr=False)
-    offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-    face_ids: torch.Tensor | None = field(default=None, repr=False)
-    local_means: torch.Tensor | None = field(default=None, repr=False)
-    local_log_scales: torch.Tensor | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -62,19 +54,23 @@ class GaussianSet:
 
 
 def render_gaussians(gs: GaussianSet, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-                     background: torch.Tensor | None = None, backend: str = "auto", check: bool = True):
+                     background: torch.Tensor | None = None, backend: str = "auto", check: bool = True,
+                     colors: torch.Tensor | None = None):
     """Rasterize ``gs`` seen by the camera (viewmat [4,4] world -> camera, K [3,3]) into a
     ``width`` x ``height`` image: returns (image [H,W,3], alpha [H,W,1], info) as :func:`rasterize` does.
 
     viewmat, K and background [3] may live on any device or be numpy arrays: they are moved to the
     Gaussians' device and dtype. Differentiable; wrap in ``torch.no_grad()`` to only look.
     ``check``: as :func:`rasterize`'s (False in training, whose guard stays on the device).
+    ``colors`` [N,3]: ``gs.colors(viewmat)`` when the caller already has it (test-time pose fitting holds
+    the view-dependent colours between refreshes).
     """
     like = gs.means
     viewmat, K = _like(viewmat, like), _like(K, like)
     if background is not None:
         background = _like(background, like)
-    return rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(viewmat), viewmat, K, width, height,
+    colors = gs.colors(viewmat) if colors is None else colors
+    return rasterize(gs.means, gs.quats, gs.scales, gs.opacities, colors, viewmat, K, width, height,
                      background=background, backend=backend, check=check)
 
 

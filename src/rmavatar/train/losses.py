@@ -14,10 +14,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import torch
 
+from rmavatar.avatar.model import AvatarExtras
 from rmavatar.utils import UserError
 from rmavatar.utils.device import constant
 from rmavatar.utils.config import check_fields
@@ -27,12 +28,12 @@ from rmavatar.utils.config import check_fields
 class LossConfig:
     """Loss weights: L = rgb L1 + ssim (1-SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset."""
 
-    rgb: float = 1.5
-    ssim: float = 0.2
-    lpips: float = 0.05
-    pos: float = 0.01
-    scaling: float = 1.0
-    offset: float = 1.0
+    rgb: float = 1.5  # weight of the L1 colour difference between render and target
+    ssim: float = 0.2  # weight of 1 - SSIM(render, target)
+    lpips: float = 0.05  # weight of LPIPS(render clamped to [0, 1], target)
+    pos: float = 0.01  # weight of L_pos, which keeps Gaussians near their triangle
+    scaling: float = 1.0  # weight of L_scaling, which keeps face-local scales small (0: the paper's ablation)
+    offset: float = 1.0  # weight of L_offset, which keeps the rectifier's offsets small (0: the paper's ablation)
     eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
 
@@ -96,6 +97,12 @@ class _Regularisers(torch.autograd.Function):
         g_off = (offsets * c[2:]).split(ctx.widths, dim=-1)  # d(x^2) = 2 x, the 2 in backward_weights
         return g_means, g_scales, *g_off, None, None
 
+    @staticmethod
+    def reference(means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling) -> torch.Tensor:
+        """The same [3] under plain autograd: the three functions that define the terms (for tests)."""
+        return torch.stack((position_loss(means, eps_pos), scaling_loss(log_scales, eps_scaling),
+                            offset_loss(d_mu, d_s, d_r)))
+
 
 @functools.lru_cache(maxsize=32)
 def _regulariser_weights(n: int, widths: tuple, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,6 +143,11 @@ class _Clamp01(torch.autograd.Function):
         (inside,) = ctx.saved_tensors
         return torch.where(inside, grad, constant(0.0, grad.dtype, grad.device))
 
+    @staticmethod
+    def reference(x: torch.Tensor) -> torch.Tensor:
+        """The same under plain autograd (for tests)."""
+        return x.clamp(0.0, 1.0)
+
 
 def _default_lpips(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     from rmavatar.evaluate import lpips
@@ -161,7 +173,7 @@ def _lpips_to_units(a: torch.Tensor, units: list[torch.Tensor]) -> torch.Tensor:
 def total_loss(
     render: torch.Tensor,
     target: torch.Tensor,
-    gaussians: Any,
+    extras: AvatarExtras | None,
     weights: LossConfig | None = None,
     lpips_fn: ImageFn | None = None,
     ssim_fn: ImageFn | None = None,
@@ -169,9 +181,9 @@ def total_loss(
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of all terms, and each unweighted term (detached) by name.
 
-    render, target [H,W,3]; gaussians: a ``GaussianSet`` (its local_means, local_log_scales and
-    offsets feed the regularisers); weights: a ``LossConfig`` (None = the paper's weights; the
-    ablations set ``offset`` or ``scaling`` to 0).
+    render, target [H,W,3]; extras: the posed avatar's ``AvatarExtras`` (its local_means,
+    local_log_scales and offsets feed the regularisers; None: image terms only); weights: a
+    ``LossConfig`` (None = the paper's weights; the ablations set ``offset`` or ``scaling`` to 0).
     ssim_fn / lpips_fn (a, b) -> scalar similarity / distance; None = ``rmavatar.evaluate``'s.
     lpips_units: :func:`lpips_units` of ``target``, when the caller keeps them (training, per frame):
     the default LPIPS then does not run the target through its network again.
@@ -195,9 +207,8 @@ def total_loss(
             values.append(("lpips", _lpips_to_units(render, lpips_units).view(1)))
         else:
             values.append(("lpips", (lpips_fn or _default_lpips)(render, target).view(1)))
-    means = getattr(gaussians, "local_means", None)
-    log_scales = getattr(gaussians, "local_log_scales", None)
-    offsets = getattr(gaussians, "offsets", None)
+    means, log_scales, offsets = (None, None, None) if extras is None else (
+        extras.local_means, extras.local_log_scales, extras.offsets)
     if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):
         # the full model: all three in one autograd Function
         values.append(("regularisers", _Regularisers.apply(means, log_scales, *offsets, weights.eps_pos,
