@@ -278,12 +278,12 @@ def _observations(anny, go: torch.Tensor, body_pose: torch.Tensor, noise: float,
 
 
 def _fit_errors(anny, obs, true_joints, still: bool, **overrides) -> tuple[float, float, float, float]:
-    """Fit (the smoothness terms off: 8 frames far apart; ``still``: FitConfig.still(); ``overrides``:
-    other FitConfig fields, e.g. ``outline=0.0``, applied last) and return the mean 2D joint error (% of the height) and
+    """Fit (the smoothness terms off: 8 frames far apart; ``still``: BodyFitConfig.still(); ``overrides``:
+    other BodyFitConfig fields, e.g. ``outline=0.0``, applied last) and return the mean 2D joint error (% of the height) and
     root-aligned 3D joint error (mm) against the true joints [T,24,3], the spread of the fitted body_pose
     about its mean and of the pelvis' up axis about its mean (degrees)."""
     torch.manual_seed(0)
-    cfg = F.FitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0)
+    cfg = F.BodyFitConfig(start_iters=50, iters=150, smooth=0.0, smooth_pose=0.0)
     r = F.fit_body(anny, obs, replace(cfg.still() if still else cfg, **overrides), progress=False)
     fitted = PoseSequence.from_arrays(r.global_orient, r.body_pose, r.transl)
     with torch.no_grad():
@@ -314,7 +314,7 @@ def test_fit_recovers_a_turning_body_and_holding_the_pose_removes_noise(anny):
 def test_robust_smoothness_keeps_fast_arms(anny):
     """A body facing the camera swings its arms 0.5 rad up and down every 4 frames, exact landmarks, the
     smoothness of body_pose off: squared smoothness of the landmarks flattens the swing, the robust one
-    (the default, FitConfig.smooth_sigma) follows it. Measured: 2D 1.71 -> 0.08 % of the height."""
+    (the default, BodyFitConfig.smooth_sigma) follows it. Measured: 2D 1.71 -> 0.08 % of the height."""
     T = 8
     pose = F.rest_pose().expand(T, 69).clone()
     swing = 0.5 * torch.sin(torch.arange(T) * np.pi / 2 + 0.5)
@@ -322,7 +322,7 @@ def test_robust_smoothness_keeps_fast_arms(anny):
     pose[:, left] += swing
     pose[:, right] -= swing
     obs, joints = _observations(anny, _facing(np.zeros(T)), pose, 0.0, torch.Generator().manual_seed(8))
-    default = F.FitConfig()
+    default = F.BodyFitConfig()
     errors = [_fit_errors(anny, obs, joints, False, smooth=default.smooth, smooth_sigma=sigma)[0]
               for sigma in (0.0, default.smooth_sigma)]
     squared, robust = errors
@@ -344,7 +344,7 @@ def test_a_held_pose_trusts_its_outline_more_than_the_landmarks(anny):
     # 19.0 -> 15.6 mm
     obs, joints = _held_turn(anny, noise=0.0, masks=True, wander=0.015)
     full, still = _fit_errors(anny, obs, joints, True, keypoints=1.0), _fit_errors(anny, obs, joints, True)
-    assert F.FitConfig().still().keypoints == F.STILL_KEYPOINTS < 1.0
+    assert F.BodyFitConfig().still().keypoints == F.STILL_KEYPOINTS < 1.0
     assert still[0] < 0.9 * full[0] and still[1] < 0.9 * full[1], (full, still)
 
 
@@ -568,7 +568,7 @@ def test_capture_api_refuses_an_out_inside_the_input(tmp_path):
 def test_proxy_follows_an_smpl_format_body_and_its_betas(tmp_path):
     """The fit's stand-in on an SMPL-format file (random arrays with SMPL's shapes, as the SMPL tests
     make them): joints exact for any betas, surface points up to the pose blend shapes."""
-    from test_body_smpl import random_smpl, save_npz
+    from helpers import random_smpl, save_npz
 
     save_npz(random_smpl(10, seed=7), tmp_path / "m.npz")
     body = load_body_model(f"smpl:{tmp_path / 'm.npz'}")

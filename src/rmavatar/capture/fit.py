@@ -74,25 +74,22 @@ A_POSE_SHOULDER = 1.05
 A_POSE_ELBOW = 0.15
 
 
+# The --still settings' measurements: docs/capture.md, "Why the fit's defaults".
 # hold_pose for a person who holds one pose (``rmavatar capture --still``): the recommended recording, a
 # turn in a held A-pose, where MediaPipe's errors wander with the facing angle but the pose does not.
-# 1 cut the synthetic turn's joint-angle error from 5.2 to 3.3 degrees (10: 3.5, 1000: 3.8, the mean
-# pose's own bias); on the walking clip it flattened the legs (2D error 1.2 -> 2.1% of the height),
-# hence not the default.
+# It cuts the synthetic turn's joint-angle error (heavier holds keep the mean pose's own bias); on a
+# walking clip it flattens the legs, hence not the default.
 STILL_HOLD_POSE = 1.0
 # hold_up for the same recording: a person turning on the spot stays upright, so the pelvis' up axis
-# hardly moves in a static camera's frame, while MediaPipe's 3D landmarks tilt it by up to 8 degrees in
-# side views (depth, which the 2D landmarks cannot correct). 10 took the synthetic turn's global rotation
-# error from 4.7 to 3.8 degrees (1: 4.1, 100: 3.8; docs/capture.md).
+# hardly moves in a static camera's frame, while MediaPipe's 3D landmarks tilt it in side views (depth,
+# which the 2D landmarks cannot correct). 10 cuts the synthetic turn's global rotation error.
 STILL_HOLD_UP = 10.0
 # keypoints for the same recording. Fitted from its true pose, the synthetic turn's body settles where
-# the MediaPipe landmarks pull it, 0.95 px of visible-vertex error away (their errors wander with the
-# facing angle and do not average out; their offsets recalibrated on that very clip: 0.98 -> 0.976 px),
-# while a held pose's outline, seen from every side, is evidence no wrong pose fits. Weight 0.3 (the
-# masks' terms at 20 and 1 as before) took the turn's error from 0.98 to 0.84 px on its training
-# frames and 0.90 to 0.82 on its test tail (0.5: 0.87 / 0.83; 0.2: 0.83 / 0.81). On walking clips a
-# lower weight did not help (three subjects at 0.5: the first 24 frames 0.06-0.08 % of the height
-# worse), hence only with --still (docs/capture.md).
+# the MediaPipe landmarks pull it (their errors wander with the facing angle and do not average out;
+# recalibrating their offsets on that very clip does not help), while a held pose's outline, seen from
+# every side, is evidence no wrong pose fits. 0.3 (the masks' terms at 20 and 1 as before) cuts the
+# turn's visible-vertex error on its training frames and test tail; on walking clips a lower weight did
+# not help, hence only with --still.
 STILL_KEYPOINTS = 0.3
 
 
@@ -115,52 +112,47 @@ def limit_bounds(dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.
 
 
 @dataclass
-class FitConfig:
+class BodyFitConfig:
     """Weights and schedule of the fit (see the module docstring for the terms)."""
 
+    # The measurements behind these defaults: docs/capture.md, "Why the fit's defaults".
     iters: int = 400  # full fit (all terms), after the start below
     start_iters: int = 100  # global rotation, translation and pose from keypoints and directions only
-    lr: float = 0.02
+    lr: float = 0.02  # Adam's learning rate at the start of each stage (cosine decay to 5% of it)
     sigma: float = 0.03  # Geman-McClure scale of the keypoint residuals, fraction of the person's height
     min_visibility: float = 0.5  # landmarks at or below this visibility are ignored (see visibility_weight)
-    keypoints: float = 1.0
-    directions: float = 0.05
-    # 20 (was 2, before the masks were refined): the synthetic turn's global rotation error 3.8 -> 2.8
-    # degrees with --still, 2D joint error 0.75 -> 0.60 % of the height; walking 1.23 -> 1.16 %, 3D
-    # about the same; 50 made walking worse (docs/capture.md)
+    keypoints: float = 1.0  # weight of the 2D landmark term (STILL_KEYPOINTS with --still)
+    directions: float = 0.05  # weight of the 3D bone directions against MediaPipe's world landmarks
+    # weight of the body-inside-the-mask term. 20 (was 2, before the masks were refined): better global
+    # rotation and 2D joints on the synthetic turn, walking a little better in 2D; 50 made walking worse
     silhouette: float = 20.0
-    # the mask's outline pixels drawn to the body's projected surface (0: off). 1 took the synthetic
-    # turn's visible-vertex error from 1.30 to 0.98 px and its 3D joint error from 19.5 to 14.8 mm
-    # (--still); on the walking clip 2D 1.16 -> 0.98 % of the height (docs/capture.md)
+    # the mask's outline pixels drawn to the body's projected surface (0: off); 1 cut the synthetic
+    # turn's visible-vertex and 3D joint errors (--still) and the walking clip's 2D error
     outline: float = 1.0
     outline_sigma: float = 0.01  # its Geman-McClure scale, fraction of the person's height
     outline_every: int = 10  # iterations between searches for each outline pixel's nearest point
-    limits: float = 10.0
-    prior: float = 0.002
-    shape_prior: float = 0.01
+    limits: float = 10.0  # weight of the joint angles' excess past LIMITS
+    prior: float = 0.002  # weight of body_pose's pull towards the A-pose (rest_pose)
+    shape_prior: float = 0.01  # weight of SMPL betas' pull towards zero (unused for Anny)
     smooth: float = 10.0  # landmark points' acceleration (person heights per frame^2)
     # Geman-McClure scale of each landmark's acceleration (person heights per frame^2; 0: squared, as in
     # --still). Squared, a walking clip's fast swings of the legs cost so much that the fit gave up the
-    # keypoints for them: the first frame's legs collapsed onto each other (1.43 % of the height, 57 mm).
-    # At 0.02 the walking clips of three synthetic subjects (seeds 0, 3, 4; first 24 frames) went from
-    # 0.98 / 0.98 / 1.01 % of the height to 0.78 / 0.74 / 0.75 and from 59.5 / 55.5 / 58.4 mm to 56.6 /
-    # 53.0 / 56.6 (their last 6 frames, arms raised: images better, 3D 0-5 mm worse); 0.01 gained less
-    # in 3D, 0.04 and 0.08 less in 2D (docs/capture.md).
+    # keypoints for them (the first frame's legs collapsed onto each other); robust at 0.02 the walking
+    # clips of three synthetic subjects fit better in 2D and 3D; other scales gained less.
     smooth_sigma: float = 0.02
     # body_pose's acceleration (rad per frame^2). MediaPipe's evidence for the feet, hands and head is
     # weak and its errors wander with the facing angle; 5 (was 0.05) cut the fitted body's joint-angle
-    # error on the synthetic turn from 6.5 to 5.2 degrees and on the walking clip from 11.4 to 9.2
-    # (docs/capture.md); 50 smooths walking legs away.
+    # error on the synthetic turn and the walking clip; 50 smooths walking legs away.
     smooth_pose: float = 5.0
     hold_pose: float = 0.0  # body_pose's pull towards the clip's mean: 0, or STILL_HOLD_POSE (--still)
     hold_up: float = 0.0  # the pelvis' up axis' pull towards the clip's mean: 0, or STILL_HOLD_UP (--still)
     point_spacing: float = 0.04  # metres between the surface points of the silhouette term
 
-    def still(self) -> "FitConfig":
+    def still(self) -> "BodyFitConfig":
         """A copy for a person who holds one pose while turning on the spot (``--still``). Nothing of a
         held pose moves fast, so a large acceleration is MediaPipe's error, and the smoothness stays
-        squared to suppress it (the synthetic turn's test frames: 0.90 px of visible-vertex error
-        squared, 0.93 robust); the keypoints weigh less against the masks (STILL_KEYPOINTS)."""
+        squared to suppress it (robust cost the synthetic turn's test frames a little, docs/capture.md);
+        the keypoints weigh less against the masks (STILL_KEYPOINTS)."""
         return replace(self, hold_pose=STILL_HOLD_POSE, hold_up=STILL_HOLD_UP, smooth_sigma=0.0,
                        keypoints=STILL_KEYPOINTS)
 
@@ -372,7 +364,7 @@ def surface_points(body, spacing: float) -> torch.Tensor:
 class _Problem:
     """Parameters and the objective of one fit."""
 
-    def __init__(self, proxy: BodyProxy, obs: Observations, cfg: FitConfig, R0: torch.Tensor,
+    def __init__(self, proxy: BodyProxy, obs: Observations, cfg: BodyFitConfig, R0: torch.Tensor,
                  pose0: torch.Tensor, transl0: torch.Tensor):
         dev = obs.keypoints.device
         T = obs.keypoints.shape[0]
@@ -447,14 +439,14 @@ class _Problem:
         return {k: float(v.detach()) for k, v in terms.items()}
 
 
-def fit_body(body, obs: Observations, cfg: FitConfig | None = None, progress: bool = True) -> FitResult:
+def fit_body(body, obs: Observations, cfg: BodyFitConfig | None = None, progress: bool = True) -> FitResult:
     """Fit ``body`` (a BodyModel on the observations' device) to the observations; see the module
     docstring. Returns the parameters in the camera frame."""
     import time
 
     from tqdm import tqdm
 
-    cfg = cfg or FitConfig()
+    cfg = cfg or BodyFitConfig()
     start = time.perf_counter()
     dev = obs.keypoints.device
     T = obs.keypoints.shape[0]
@@ -493,4 +485,4 @@ def fit_body(body, obs: Observations, cfg: FitConfig | None = None, progress: bo
     )
 
 
-__all__ = ["FitConfig", "Observations", "FitResult", "fit_body"]
+__all__ = ["BodyFitConfig", "Observations", "FitResult", "fit_body"]

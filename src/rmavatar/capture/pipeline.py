@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rmavatar.capture.fit import FitConfig
+from rmavatar.capture.fit import BodyFitConfig
 from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_folder
 
@@ -43,14 +43,14 @@ class CaptureConfig:
     written (None: the source's); test_fraction: the tail of the clip held out as the test split;
     device: "auto", "cpu", "cuda"."""
 
-    body: str = "anny"
-    fov: float | None = None
-    focal: float | None = None
-    fps: float | None = None
-    size: int | None = None
-    test_fraction: float = 0.2
-    device: str = "auto"
-    fit: FitConfig = field(default_factory=FitConfig)
+    body: str = "anny"  # body model fitted: "anny", "anny:PRESET" or "smpl:PATH"
+    fov: float | None = None  # horizontal field of view in degrees (None: focal, else DEFAULT_FOCAL_LONG_SIDE)
+    focal: float | None = None  # focal length in pixels of the output frames (None: see fov)
+    fps: float | None = None  # keep at most this many frames per second (None: every frame)
+    size: int | None = None  # longer side in pixels of the frames written (None: the source's)
+    test_fraction: float = 0.2  # tail of the clip held out as the test split
+    device: str = "auto"  # where the fit runs: "auto", "cpu" or "cuda"
+    fit: BodyFitConfig = field(default_factory=BodyFitConfig)  # the body fit's weights and schedule
 
     def check(self) -> None:
         if self.fov is not None and self.focal is not None:

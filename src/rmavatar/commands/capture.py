@@ -64,10 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rmavatar.capture import CaptureConfig, capture
-    from rmavatar.capture.fit import FitConfig
+    from rmavatar.capture.fit import BodyFitConfig
     from rmavatar.utils import UserError
 
-    fit = FitConfig().still() if args.still else FitConfig()
+    fit = BodyFitConfig().still() if args.still else BodyFitConfig()
     if args.iters is not None:
         if args.iters < 1:
             raise UserError(f"--iters must be >= 1, got {args.iters}")

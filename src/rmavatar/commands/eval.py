@@ -78,9 +78,9 @@ def run(args: argparse.Namespace) -> int:
 
     fit = None
     if args.fit_poses is not None:
-        from rmavatar.evaluate.fit import FitConfig
+        from rmavatar.evaluate.fit import PoseFitConfig
 
-        fit = FitConfig(steps=args.fit_poses, batch=args.fit_batch, smooth=args.fit_smooth).validate()
+        fit = PoseFitConfig(steps=args.fit_poses, batch=args.fit_batch, smooth=args.fit_smooth).validate()
     result = evaluate_run(
         args.run, data=args.data, split=args.split, bg=args.bg, size=args.size, out_dir=images,
         device=args.device, max_frames=args.frames, progress=not args.quiet, overwrite=args.overwrite, fit=fit,

@@ -9,12 +9,10 @@ silhouette, which pulls limbs back into place even where the colours are flat), 
 fine (averaged over 4x4, then 2x2 pixel blocks, then per pixel), so that a limb several pixels off
 still feels the pull. The rectifier sees the corrected pose but sends no gradient into it, as in
 training; its output and the view-dependent colours are re-evaluated every ``refresh`` steps and held in
-between, so a step costs only the mesh embedding and the rasterizer (measured 2.1x cheaper than
-re-evaluating them every step, 256 px, 40k Gaussians).
-
-Measured on a 256 px synthetic subject with 3 degrees of noise per axis on every joint (the avatar
-trained on the true poses, the first 3 test frames): 17.61 dB with the given poses, 33.40 dB after
-100 steps, 34.65 dB with the true poses (docs/evaluate.md).
+between, so a step costs only the mesh embedding and the rasterizer. Every frame is drawn through
+:func:`rmavatar.avatar.frame.render_frame` and its target made with :func:`rmavatar.render.composite`,
+as in training and evaluation. What the fit gains and costs, measured: docs/evaluate.md ("Test-time pose
+fitting").
 
 This is the protocol InstantAvatar and GART report PeopleSnapshot numbers with; the evaluation's JSON
 states it (``protocol.fit_poses``).
@@ -28,40 +26,39 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from rmavatar.avatar.frame import render_frame
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
 from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
-from rmavatar.render.rasterize import rasterize
+from rmavatar.render.camera import CameraTensors
+from rmavatar.render.composite import composite
 from rmavatar.utils import UserError
 from rmavatar.utils.config import check_fields
 
 
 @dataclass
-class FitConfig:
+class PoseFitConfig:
     """How evaluation fits poses: Adam ``steps`` per frame, ``batch`` frames optimised together, the
     learning rates (radians / metres per step) decaying linearly to ``final_scale`` of themselves."""
 
-    steps: int = 100
-    batch: int = 8
-    lr_rotation: float = 2e-2
-    lr_translation: float = 5e-4
-    final_scale: float = 0.1
-    silhouette: float = 1.0  # weight of the alpha-vs-mask term
-    # Weight of sum_j |delta_j|^2 (rad^2) per frame, pulling each joint's correction back to zero. Adam
-    # scales every joint's step to the learning rate however faint its gradient, so joints the image
-    # hardly sees (feet, hands: gradients 100-1000x below the hips', measured) wandered 7-10 degrees
-    # without it. At 0.01 the pull equals such a joint's gradient within a degree, and a knee's only
-    # beyond ten.
+    steps: int = 100  # Adam steps per frame
+    batch: int = 8  # frames optimised together (one loss, one backward)
+    lr_rotation: float = 2e-2  # learning rate of the joint rotations, radians per step
+    lr_translation: float = 5e-4  # learning rate of the translation, metres per step
+    final_scale: float = 0.1  # both learning rates decay linearly to this fraction of themselves
+    silhouette: float = 1.0  # weight of the |alpha - mask| term beside the RGB term
+    # Weight of sum_j |delta_j|^2 (rad^2) per frame, pulling each joint's correction back to zero: Adam
+    # scales every joint's step to the learning rate however faint its gradient, so the joints the image
+    # hardly sees (feet, hands) would wander without it.
     prior: float = 0.01
-    # Coarse to fine: the images are compared averaged over k x k pixel blocks, each k of ``scales`` for
-    # an equal share of the steps (a limb several pixels off still gets a gradient from the coarse ones;
-    # measured +0.4 dB at 50 steps).
+    # Coarse to fine: the images are compared averaged over k x k pixel blocks, each k for an equal share
+    # of the steps, so that a limb several pixels off still gets a gradient from the coarse ones.
     scales: tuple[int, ...] = (4, 2, 1)
-    refresh: int = 10  # steps between re-running the rectifier and the view-dependent colours
-    # The split's given poses are first averaged over +-this many frames (body.smooth_poses: tracker
-    # jitter is frame-to-frame); 0 = fit from the poses as given.
+    refresh: int = 10  # steps between re-running the rectifier and the view-dependent colours (held between)
+    # Frames (+-) the split's given poses are first averaged over (body.smooth_poses; tracker jitter is
+    # frame-to-frame); 0 = fit from the poses as given.
     smooth: int = 2
 
-    def validate(self) -> "FitConfig":
+    def validate(self) -> "PoseFitConfig":
         # the settings `rmavatar eval` has flags for, in the flags' words
         if self.steps < 1:
             raise UserError(f"--fit-poses needs at least 1 step, got {self.steps}")
@@ -91,7 +88,7 @@ class FitConfig:
 
 
 def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, background: torch.Tensor,
-              cfg: FitConfig | None = None, progress: bool = False) -> PoseSequence:
+              cfg: PoseFitConfig | None = None, progress: bool = False) -> PoseSequence:
     """The poses of ``frames`` (a sequence of Frame objects: image, mask, camera; indexed one batch at a
     time) fitted to their images.
 
@@ -102,7 +99,7 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
     """
     from tqdm import tqdm
 
-    cfg = (cfg or FitConfig()).validate()
+    cfg = (cfg or PoseFitConfig()).validate()
     n = len(poses)
     if len(frames) != n:
         raise ValueError(f"{n} poses for {len(frames)} frames")
@@ -129,7 +126,7 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
     return PoseSequence(*(torch.cat([getattr(p, k) for p in out]) for k in ("global_orient", "body_pose", "transl")))
 
 
-def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: FitConfig) -> PoseSequence:
+def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: PoseFitConfig) -> PoseSequence:
     dev = background.device
     b = len(poses)
     delta = torch.zeros(b, CORRECTION_DIM, device=dev, requires_grad=True)
@@ -138,14 +135,7 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
     counts = torch.zeros(b, dtype=torch.long, device=dev)
     lr = torch.full((CORRECTION_DIM,), cfg.lr_rotation, device=dev)
     lr[-3:] = cfg.lr_translation
-    targets, masks, cams = [], [], []
-    for f in frames:
-        m = torch.tensor(f.mask, dtype=torch.float32, device=dev)[..., None]
-        targets.append(torch.tensor(f.image, dtype=torch.float32, device=dev) * m + background * (1 - m))
-        masks.append(m)
-        c = f.camera
-        cams.append((torch.tensor(c.viewmat, dtype=torch.float32, device=dev),
-                     torch.tensor(c.K, dtype=torch.float32, device=dev), c.width, c.height))
+    targets, masks, cams = _targets(frames, background)
     rectified: list = [None] * b
     colors: list = [None] * b
     pooled = {}  # the targets and masks at the current scale: pooled once per scale, not every step
@@ -159,27 +149,38 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
         vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl).vertices.float()
         loss = 0.0
         for k in range(b):
-            viewmat, K, width, height = cams[k]
             # The rectifier's output and the view-dependent colours send no gradient to the pose; held
             # fixed between refreshes, a step costs the mesh embedding and the rasterizer only.
             refresh = step % cfg.refresh == 0
             if refresh and avatar.rectifier is not None:
                 with torch.no_grad():
                     rectified[k] = avatar.rectify(vertices[k], fitted.body_pose[k])
-            gs = avatar(vertices[k], rectified=rectified[k])
-            if refresh:
-                with torch.no_grad():
-                    colors[k] = gs.colors(viewmat)
-            image, alpha, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, colors[k], viewmat, K, width,
-                                        height, background=background)
-            loss = loss + (_pooled(image, pool) - pooled["targets"][k]).abs().mean() \
-                + cfg.silhouette * (_pooled(alpha, pool) - pooled["masks"][k]).abs().mean()
+            drawn = render_frame(avatar, vertices[k], fitted.body_pose[k], cams[k], background,
+                                 rectified=rectified[k], colors=None if refresh else colors[k], hold_colors=True)
+            colors[k] = drawn.colors
+            loss = loss + (_pooled(drawn.image, pool) - pooled["targets"][k]).abs().mean() \
+                + cfg.silhouette * (_pooled(drawn.alpha, pool) - pooled["masks"][k]).abs().mean()
         loss = loss + cfg.prior * delta[:, : NUM_JOINTS * 3].square().sum()
         (grad,) = torch.autograd.grad(loss, delta)
         correction_adam_step(delta, grad, exp_avg, exp_avg_sq, counts, slice(0, b), lr * scale)
     with torch.no_grad():
         fitted = apply_pose_corrections(poses, delta)
     return fitted.to("cpu")
+
+
+def _targets(frames, background: torch.Tensor) -> tuple[list, list, list]:
+    """Each frame's ground truth composited over ``background`` [H,W,3], its mask [H,W,1] and its
+    camera (CameraTensors), on the background's device."""
+    dev = background.device
+    targets, masks, cams = [], [], []
+    for f in frames:
+        m = torch.tensor(f.mask, dtype=torch.float32, device=dev)[..., None]
+        targets.append(composite(torch.tensor(f.image, dtype=torch.float32, device=dev), m, background))
+        masks.append(m)
+        c = f.camera
+        cams.append(CameraTensors(torch.tensor(c.viewmat, dtype=torch.float32, device=dev),
+                                  torch.tensor(c.K, dtype=torch.float32, device=dev), c.width, c.height))
+    return targets, masks, cams
 
 
 def _pooled(image: torch.Tensor, k: int) -> torch.Tensor:

@@ -13,6 +13,7 @@ import contextlib
 import json
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,21 @@ def check_images_dir(path: Path, overwrite: bool = False) -> None:
                         writes=("*.png", IMAGES_MARKER))
 
 
+@dataclass
+class _Evaluation:
+    """An evaluation's run, data and settings, once opened and checked."""
+
+    run: Any  # the TrainedAvatar
+    dataset: Any
+    spec: Any  # the dataset spec evaluated on
+    split: str
+    total: int  # frames in the split
+    n: int  # frames evaluated: the first n
+    params: dict  # the split's body parameters (betas, poses, frame numbers)
+    device: torch.device
+    background: torch.Tensor  # [3] on the device, behind render and ground truth alike
+
+
 def evaluate_run(
     run_dir: str | os.PathLike,
     data: str | None = None,
@@ -85,22 +101,13 @@ def evaluate_run(
     out_dir: where to write side-by-side images (render | ground truth | error heat map) and a copy of
     the result (``metrics.json``), or None for no images; replaced atomically, and only if it is empty
     or an earlier evaluation's (``overwrite``: see :mod:`rmavatar.utils.outputs`); max_frames: evaluate only
-    the first N frames of the split; fit: a :class:`rmavatar.evaluate.fit.FitConfig` to fit every frame's pose
+    the first N frames of the split; fit: a :class:`rmavatar.evaluate.fit.PoseFitConfig` to fit every frame's pose
     to its image before scoring (the avatar and its checkpoint stay untouched), or None.
 
     Returns {"protocol": {...}, "frames": [{"position", "index", "psnr", "ssim", "lpips"}, ...],
     "mean": {"psnr", "ssim", "lpips"}}, and for a synthetic subject with true poses "pose_error" (the
     used poses' error, see :func:`rmavatar.body.pose_error`). A PSNR of infinity is None.
     """
-    from PIL import Image
-    from tqdm import tqdm
-
-    from rmavatar.avatar.trained import load_trained
-    from rmavatar.body import PoseSequence, pose_error, posed_vertices, smooth_poses
-    from rmavatar.data import load_dataset
-    from rmavatar.data.synth import true_poses
-    from rmavatar.evaluate.metrics import lpips, psnr, ssim
-
     if bg not in BACKGROUNDS:
         raise UserError(f"background must be one of {', '.join(BACKGROUNDS)}, not {bg!r}")
     if size is not None and size < 32:
@@ -110,24 +117,52 @@ def evaluate_run(
     if out_dir is not None:
         out_dir = Path(out_dir)
         check_images_dir(out_dir, overwrite)
+    ev = _open(run_dir, data, split, bg, size, device, max_frames)
+    poses, pose_source, errors = _choose_poses(ev, fit, progress)
+    with contextlib.ExitStack() as stack:
+        # Images go to a temporary folder that replaces out_dir only once every frame is done.
+        tmp_dir = stack.enter_context(
+            output_folder(out_dir, IMAGES_KIND, option="--images", overwrite=overwrite,
+                          writes=("*.png", IMAGES_MARKER))) if out_dir is not None else None
+        rows = _score_frames(ev, poses, tmp_dir, progress)
+        result = _result(ev, run_dir, bg, fit, pose_source, rows, errors)
+        if tmp_dir is not None:
+            (tmp_dir / IMAGES_MARKER).write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    return result
+
+
+def _open(run_dir, data, split: str, bg: str, size: int | None, device: str, max_frames: int | None) -> _Evaluation:
+    """Load the run and the dataset (the run's own unless ``data``, at the run's size unless ``size``)
+    and check that the split's images are large enough to score."""
+    from rmavatar.avatar.trained import load_trained
+    from rmavatar.data import load_dataset
 
     dev = resolve_device(device)
     run = load_trained(run_dir, device=dev)
     spec = data if data is not None else run.data_spec
-    if size is None:
-        size = run.size
-    dataset = load_dataset(spec, size=size)
+    dataset = load_dataset(spec, size=run.size if size is None else size)
     total = dataset.num_frames(split)  # a UserError naming the splits there are when missing
     n = total if max_frames is None else min(total, max_frames)
     params = dataset.params(split)
-    given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
-    poses, pose_source = given, "the dataset's"
-    if run.training_poses is not None and split == run.training_split and spec == run.data_spec:
-        poses, pose_source = run.training_poses, "refined in training"
     width, height = dataset.image_size
     if min(width, height) < 32:
         raise UserError(f"images of {width}x{height} are too small to score (LPIPS needs 32x32); pass a larger size")
     background = torch.tensor(BACKGROUNDS[bg], dtype=torch.float32, device=dev)
+    return _Evaluation(run, dataset, spec, split, total, n, params, dev, background)
+
+
+def _choose_poses(ev: _Evaluation, fit, progress: bool):
+    """The poses of the first ``ev.n`` frames: the dataset's, or the run's refined ones on its own
+    training frames; with ``fit``, smoothed (only the dataset's) and then fitted to each image.
+    Returns (poses, where they come from in words, their errors against the true poses or None)."""
+    from rmavatar.body import PoseSequence, pose_error, smooth_poses
+    from rmavatar.data.synth import true_poses
+
+    run, params, n = ev.run, ev.params, ev.n
+    given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    poses, pose_source = given, "the dataset's"
+    if run.training_poses is not None and ev.split == run.training_split and ev.spec == run.data_spec:
+        poses, pose_source = run.training_poses, "refined in training"
     if fit is not None and fit.smooth and pose_source == "the dataset's":
         poses = smooth_poses(poses, params["index"], fit.smooth)  # over the whole split, before the first n
         pose_source += f", averaged over +-{fit.smooth} frames"
@@ -138,76 +173,101 @@ def evaluate_run(
         if progress:
             print(f"fitting the poses of {n} frames ({fit.steps} steps, {fit.batch} frames at a time) ...", flush=True)
         poses = fit_poses(run.avatar, run.body, poses, params["betas"][:n] if run.body.num_betas > 0 else None,
-                          dataset.frames(split, n), background, fit)
+                          ev.dataset.frames(ev.split, n), ev.background, fit)
         pose_source += ", then fitted to each test image"
-    truth = true_poses(dataset, split)
+    truth = true_poses(ev.dataset, ev.split)
     errors = None
     if truth is not None:
         truth = truth.select(slice(0, n))
         errors = {"given": pose_error(given.select(slice(0, n)), truth), "used": pose_error(poses, truth)}
+    return poses, pose_source, errors
+
+
+@torch.no_grad()
+def _score_frames(ev: _Evaluation, poses, tmp_dir: Path | None, progress: bool) -> list[dict[str, Any]]:
+    """Render and score the first ``ev.n`` frames with ``poses``: one row per frame; with ``tmp_dir``,
+    each frame's side-by-side image is written there."""
+    from tqdm import tqdm
 
     rows: list[dict[str, Any]] = []
-    bar = tqdm(range(n), desc=f"eval {split}", unit="frame", disable=not progress, dynamic_ncols=True)
-    with contextlib.ExitStack() as stack, torch.no_grad():
-        # Images go to a temporary folder that replaces out_dir only once every frame is done.
-        tmp_dir = stack.enter_context(
-            output_folder(out_dir, IMAGES_KIND, option="--images", overwrite=overwrite,
-                          writes=("*.png", IMAGES_MARKER))) if out_dir is not None else None
-        for i in bar:
-            frame = dataset.frame(split, i)
-            one = poses.select(slice(i, i + 1))
-            verts = posed_vertices(run.body, one, params["betas"][i : i + 1])[0]  # the frame's own shape
-            gs = run.avatar(verts, one.body_pose[0].to(dev))
-            image = run.render(gs, frame.camera, background)
-            render = image.clamp(0.0, 1.0)
-            mask = torch.tensor(frame.mask, dtype=torch.float32, device=dev)[..., None]
-            target = torch.tensor(frame.image, dtype=torch.float32, device=dev) * mask + background * (1 - mask)
-            row = {
-                "position": i,
-                "index": int(frame.index),
-                "psnr": float(psnr(render, target)),
-                "ssim": float(ssim(render, target)),
-                "lpips": float(lpips(render, target)),
-            }
-            rows.append(row)
-            bar.set_postfix(psnr=f"{row['psnr']:.2f}", refresh=False)
-            if tmp_dir is not None:
-                name = f"{split}_{i:04d}_frame{int(frame.index):05d}.png"
-                Image.fromarray(side_by_side(render.cpu().numpy(), target.cpu().numpy())).save(tmp_dir / name)
-        bar.close()
-
-        mean = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips")}
-        result = {
-            "protocol": {
-                "run": str(Path(run_dir).resolve()),
-                "iteration": run.iteration,
-                "body": str(getattr(run.body, "spec", "")),
-                "rectifier": run.avatar.config.rectifier,  # the design's name ("local", "paper") or False
-                "data": str(spec),
-                "split": split,
-                "frames": n,
-                "frames_in_split": total,
-                "resolution": [width, height],
-                "background": bg,
-                "image_region": "full image (not masked); ground truth = frame composited over the background "
-                                "with its mask",
-                "render_clamped": True,
-                "pose_refinement": fit is not None,
-                "fit_poses": fit.steps if fit is not None else None,
-                "fit_poses_settings": fit.protocol() if fit is not None else None,
-                "poses": pose_source,
-                "psnr": "20 log10(1 / RMSE) per image (peak 1), then averaged over frames",
-                "ssim": "11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, data range 1, mean over the valid "
-                        "region and RGB; per image, then averaged",
-                "lpips": "LPIPS v0.1, AlexNet backbone, inputs mapped to [-1, 1]; per image, then averaged",
-                "device": str(dev),
-                "rmavatar_version": __version__,
-            },
-            "frames": [{**r, "psnr": _finite_or_none(r["psnr"])} for r in rows],
-            "mean": {**mean, "psnr": _finite_or_none(mean["psnr"])},
-        }
-        if errors is not None:
-            result["pose_error"] = errors
+    bar = tqdm(range(ev.n), desc=f"eval {ev.split}", unit="frame", disable=not progress, dynamic_ncols=True)
+    for i in bar:
+        frame, render, target = _render_and_target(ev, poses, i)
+        row = {"position": i, "index": int(frame.index), **_scores(render, target)}
+        rows.append(row)
+        bar.set_postfix(psnr=f"{row['psnr']:.2f}", refresh=False)
         if tmp_dir is not None:
-            (tmp_dir / IMAGES_MARKER).write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+            _write_side_by_side(tmp_dir / f"{ev.split}_{i:04d}_frame{int(frame.index):05d}.png", render, target)
+    bar.close()
+    return rows
+
+
+def _render_and_target(ev: _Evaluation, poses, i: int):
+    """Frame ``i``, its render (clamped to [0, 1]) and its ground truth, both over the background."""
+    from rmavatar.avatar.frame import render_frame
+    from rmavatar.body import posed_vertices
+    from rmavatar.render import composite
+
+    frame = ev.dataset.frame(ev.split, i)
+    one = poses.select(slice(i, i + 1))
+    verts = posed_vertices(ev.run.body, one, ev.params["betas"][i : i + 1])[0]  # the frame's own shape
+    drawn = render_frame(ev.run.avatar, verts, one.body_pose[0].to(ev.device), frame.camera, ev.background)
+    mask = torch.tensor(frame.mask, dtype=torch.float32, device=ev.device)
+    target = composite(torch.tensor(frame.image, dtype=torch.float32, device=ev.device), mask, ev.background)
+    return frame, drawn.image.clamp(0.0, 1.0), target
+
+
+def _scores(render: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
+    from rmavatar.evaluate.metrics import lpips, psnr, ssim
+
+    return {"psnr": float(psnr(render, target)), "ssim": float(ssim(render, target)),
+            "lpips": float(lpips(render, target))}
+
+
+def _write_side_by_side(path: Path, render: torch.Tensor, target: torch.Tensor) -> None:
+    from PIL import Image
+
+    Image.fromarray(side_by_side(render.cpu().numpy(), target.cpu().numpy())).save(path)
+
+
+def _result(ev: _Evaluation, run_dir, bg: str, fit, pose_source: str, rows: list[dict[str, Any]],
+            errors: dict | None) -> dict[str, Any]:
+    """The evaluation's result: its protocol, the per-frame rows and their means (JSON-ready)."""
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips")}
+    result = {
+        "protocol": _protocol(ev, run_dir, bg, fit, pose_source),
+        "frames": [{**r, "psnr": _finite_or_none(r["psnr"])} for r in rows],
+        "mean": {**mean, "psnr": _finite_or_none(mean["psnr"])},
+    }
+    if errors is not None:
+        result["pose_error"] = errors
     return result
+
+
+def _protocol(ev: _Evaluation, run_dir, bg: str, fit, pose_source: str) -> dict[str, Any]:
+    run = ev.run
+    return {
+        "run": str(Path(run_dir).resolve()),
+        "iteration": run.iteration,
+        "body": str(getattr(run.body, "spec", "")),
+        "rectifier": run.avatar.config.rectifier,  # the design's name ("local", "paper") or False
+        "data": str(ev.spec),
+        "split": ev.split,
+        "frames": ev.n,
+        "frames_in_split": ev.total,
+        "resolution": list(ev.dataset.image_size),
+        "background": bg,
+        "image_region": "full image (not masked); ground truth = frame composited over the background "
+                        "with its mask",
+        "render_clamped": True,
+        "pose_refinement": fit is not None,
+        "fit_poses": fit.steps if fit is not None else None,
+        "fit_poses_settings": fit.protocol() if fit is not None else None,
+        "poses": pose_source,
+        "psnr": "20 log10(1 / RMSE) per image (peak 1), then averaged over frames",
+        "ssim": "11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, data range 1, mean over the valid "
+                "region and RGB; per image, then averaged",
+        "lpips": "LPIPS v0.1, AlexNet backbone, inputs mapped to [-1, 1]; per image, then averaged",
+        "device": str(ev.device),
+        "rmavatar_version": __version__,
+    }
