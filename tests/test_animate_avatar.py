@@ -6,6 +6,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 import torch
+from helpers import dance
 
 from rmavatar.animate.camera import intrinsics, look_at
 from rmavatar.animate.jobs import VideoOptions, animate_video, turntable_video
@@ -41,18 +42,6 @@ def fake_run():
     avatar.active_sh_degree.fill_(1)
     avatar.eval()
     return TrainedAvatar(avatar, body, betas=None, iteration=0, data_spec="", size=None, config={})
-
-
-def dance(n=6, drift=3.0):
-    """A y-up motion (AIST++ layout: poses (N,72), trans) that swings the arms and walks ``drift`` m."""
-    t = np.arange(n) / n
-    poses = np.zeros((n, 72), np.float32)
-    poses[:, 1] = 1.2  # turned away from +z
-    poses[:, 16 * 3 + 2] = -0.3 - 0.8 * np.sin(2 * np.pi * t)
-    poses[:, 17 * 3 + 2] = 0.3 + 0.8 * np.sin(2 * np.pi * t)
-    poses[:, 1 * 3] = 0.6 * np.sin(2 * np.pi * t)
-    trans = np.stack([drift * t, 0.9 + 0.0 * t, 0.5 * drift * t], 1).astype(np.float32)
-    return poses, trans
 
 
 def write_motion(path, n=6, drift=3.0):

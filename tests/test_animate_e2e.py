@@ -1,7 +1,7 @@
 """End to end on a small trained run: ``rmavatar export / animate / render --turntable / view``.
 
 The run is trained once per session (a tiny synthetic subject, 32x32, a few iterations) by the
-``trained_run`` fixture. Set RMAVATAR_KEEP_OUTPUTS=DIR to keep the videos and PLYs.
+``trained_run`` fixture (conftest.py). Set RMAVATAR_KEEP_OUTPUTS=DIR to keep the videos and PLYs.
 """
 
 import math
@@ -20,33 +20,6 @@ import roma
 import torch
 
 from rmavatar.commands import main
-
-ITERS = 10
-SIZE = 32
-
-
-@pytest.fixture(scope="session")
-def trained_run(tmp_path_factory):
-    """RUN folder of a tiny avatar trained with the real trainer (shared by every module using it)."""
-    root = tmp_path_factory.getbasetemp() / "rmavatar_trained_run"
-    run = root / "run"
-    if (run / "checkpoints" / "last.pt").is_file():
-        return run
-    root.mkdir(exist_ok=True)
-    assert main(["synth", str(root / "subject"), "--size", str(SIZE), "--train", "8", "--test", "2",
-                 "--novel-pose", "2", "--ss", "1", "--quiet"]) == 0
-    from rmavatar.train import TrainConfig, train
-
-    cfg = TrainConfig()
-    cfg.data.path = str(root / "subject")
-    cfg.data.size = SIZE
-    cfg.optim.iters = ITERS
-    cfg.density.enabled = False
-    cfg.log.tensorboard = False
-    cfg.model.sh_degree = 1
-    cfg.device = "cpu"
-    train(cfg, run, progress=False)
-    return run
 
 
 def keep(path: Path) -> None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import front_camera
 
 from rmavatar.commands import main
 
@@ -26,9 +27,7 @@ SIZE = 32
 
 # ----------------------------------------------------------------------------------------------- shared world
 def _camera(fx: float = 45.0, cx: float = SIZE / 2) -> dict:
-    viewmat = np.diag([1.0, -1.0, -1.0, 1.0]).astype(np.float32)  # looks along world -z
-    viewmat[:3, 3] = -viewmat[:3, :3] @ np.array([0.0, -0.4, 3.2], np.float32)
-    return {"K": np.array([[fx, 0, cx], [0, fx, SIZE / 2], [0, 0, 1]], np.float32), "viewmat": viewmat}
+    return front_camera(SIZE, fx, cx)
 
 
 def _dataset(path: Path, *, fx: float = 45.0, cx: float = SIZE / 2, mask_value: float = 1.0) -> Path:
@@ -48,19 +47,13 @@ def _dataset(path: Path, *, fx: float = 45.0, cx: float = SIZE / 2, mask_value: 
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(tmp_path_factory, make_train_config):
     """A tiny dataset, a run trained on it for two steps, a motion file and a config, shared read-only."""
-    from rmavatar.train import TrainConfig, train
+    from rmavatar.train import train
 
     root = tmp_path_factory.mktemp("world")
     data = _dataset(root / "data")
-    cfg = TrainConfig()
-    cfg.data.path = str(data)
-    cfg.optim.iters = 2
-    cfg.density.enabled = False
-    cfg.log.tensorboard = False
-    cfg.model.sh_degree = 0
-    cfg.device = "cpu"
+    cfg = make_train_config(data, 2, sh_degree=0)
     train(cfg, root / "run", progress=False)
     poses = np.zeros((3, 72), np.float32)
     np.savez(root / "motion.npz", poses=poses, trans=np.zeros((3, 3), np.float32), fps=np.float32(30))

@@ -25,13 +25,10 @@ def read_json(path):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    from rmavatar.data.synth import SynthConfig, synthesize
-
+def data(tmp_path_factory, make_synth_subject):
     out = tmp_path_factory.mktemp("synth") / "subject"
     # Also builds the Anny cache before two workers would race to build it.
-    synthesize(out, SynthConfig(size=SIZE, seed=0, train=6, test=2, novel_pose=0, ss=1), progress=False)
-    return out
+    return make_synth_subject(out, size=SIZE, seed=0, train=6, test=2, novel_pose=0, ss=1)
 
 
 def batch_cmd(jobs, root):

@@ -11,46 +11,12 @@ import numpy as np
 import pytest
 import scipy.sparse
 import torch
+from helpers import SMPL_F as F
+from helpers import SMPL_V as V
+from helpers import random_smpl, save_npz
 
 from rmavatar.body import load_body_model
-from rmavatar.body.base import SMPL_PARENTS
 from rmavatar.utils import UserError
-
-V, F = 6890, 13776
-
-
-def random_smpl(num_betas: int, seed: int) -> dict:
-    """A random model with SMPL's array shapes and sparsity (weights on <= 4 joints, sparse regressor)."""
-    rng = np.random.default_rng(seed)
-    parents = np.array(SMPL_PARENTS, dtype=np.int64)
-    joints = np.zeros((24, 3))
-    for j in range(1, 24):
-        joints[j] = joints[parents[j]] + rng.normal(0, 0.15, 3)
-    owner = rng.integers(0, 24, V)
-    v_template = joints[owner] + rng.normal(0, 0.05, (V, 3))
-    weights = np.zeros((V, 24))
-    rows = np.arange(V)[:, None]
-    others = np.stack([owner, np.maximum(parents[owner], 0), *rng.integers(0, 24, (2, V))], 1)  # <= 4 joints
-    weights[rows, others] = rng.random((V, 4))
-    weights /= weights.sum(1, keepdims=True)
-    J_regressor = np.zeros((24, V))
-    for j in range(24):
-        idx = rng.choice(np.nonzero(owner == j)[0], 20, replace=False)
-        w = rng.random(20)
-        J_regressor[j, idx] = w / w.sum()
-    kintree = np.stack([parents, np.arange(24)]).astype(np.uint32)
-    kintree[0, 0] = 4294967295  # as in the official files
-    return {
-        "v_template": v_template,
-        "f": rng.integers(0, V, (F, 3)).astype(np.uint32),
-        "shapedirs": rng.normal(0, 0.01, (V, 3, num_betas)),
-        "posedirs": rng.normal(0, 0.01, (V, 3, 207)),
-        "J_regressor": scipy.sparse.csc_matrix(J_regressor),
-        "weights": weights,
-        "kintree_table": kintree,
-        "bs_type": "lrotmin",
-        "bs_style": "lbs",
-    }
 
 
 @contextlib.contextmanager
@@ -100,12 +66,6 @@ def save_pkl(model: dict, path) -> None:
     stand_ins = {"chumpy.ch.Ch": Ch, "scipy.sparse.csc.csc_matrix": csc_matrix}
     with fake_modules(stand_ins), open(path, "wb") as fh:
         pickle.dump(data, fh, protocol=2)
-
-
-def save_npz(model: dict, path) -> None:
-    arrays = {k: v for k, v in model.items() if not isinstance(v, str)}
-    arrays["J_regressor"] = model["J_regressor"].toarray()
-    np.savez(path, **arrays)
 
 
 @pytest.fixture(scope="module")

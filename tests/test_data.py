@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import RNG, add_zju_frame, make_peoplesnapshot, make_zju, rodrigues, save_png
 from PIL import Image
 
 from rmavatar.data import Camera, NativeMeta, load_dataset, write_native
@@ -16,25 +17,6 @@ from rmavatar.data.registry import parse_spec
 from rmavatar.data.zju import SPLITS as ZJU_SPLITS
 from rmavatar.data.zju import undistort_maps, zju_to_smpl_params
 from rmavatar.utils import UserError
-
-RNG = np.random.default_rng(0)
-
-
-def rodrigues(r):
-    """Axis-angle [3] -> rotation matrix [3,3], written out (independent of scipy)."""
-    r = np.asarray(r, np.float64)
-    theta = np.linalg.norm(r)
-    if theta < 1e-12:
-        return np.eye(3)
-    k = r / theta
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(theta) * Kx + (1 - math.cos(theta)) * Kx @ Kx
-
-
-def save_png(path, arr):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(arr).save(path)
-
 
 # --- Camera ----------------------------------------------------------------------------------------
 
@@ -235,37 +217,6 @@ def test_peoplesnapshot_standard_split_counts():
         assert tuple(len(split_frames(*table[s])) for s in ("train", "val", "test")) == counts
 
 
-def make_peoplesnapshot(root, frames_by_split, size=(6, 4), mask_kind="npy", total=None):
-    """A subject folder in InstantAvatar's layout; returns per-split betas."""
-    w, h = size
-    root.mkdir(parents=True)
-    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
-    np.savez(root / "cameras.npz", intrinsic=K, extrinsic=np.eye(4), height=h, width=w)
-    frames = sorted({i for f in frames_by_split.values() for i in f}) if total is None else range(total)
-    for i in frames:
-        img = np.full((h, w, 3), i % 256, np.uint8)
-        save_png(root / "images" / f"image_{i:04d}.png", img)
-        m = np.zeros((h, w), np.uint8)
-        m[:, : w // 2] = 1
-        if mask_kind == "npy":
-            (root / "masks").mkdir(exist_ok=True)
-            np.save(root / "masks" / f"mask_{i:04d}.npy", m)
-        else:
-            soft = m * 255
-            soft[0, 0] = 128
-            save_png(root / "masks" / f"mask_{i:04d}.png", soft)
-    (root / "poses").mkdir()
-    betas = {}
-    for split, fr in frames_by_split.items():
-        n = len(fr)
-        betas[split] = RNG.normal(size=(1, 10)).astype(np.float32)
-        transl = np.zeros((n, 3), np.float32)
-        transl[:, 0] = fr  # the frame number, to check the row order
-        np.savez(root / "poses" / f"anim_nerf_{split}.npz", betas=betas[split],
-                 global_orient=np.tile([math.pi, 0, 0], (n, 1)), body_pose=np.zeros((n, 69)), transl=transl)
-    return betas
-
-
 def test_peoplesnapshot_standard_subject(tmp_path):
     _, table = SUBJECTS["male-3-casual"]
     frames = {s: split_frames(*r) for s, r in table.items()}
@@ -353,40 +304,6 @@ def test_zju_rh_th_conversion_rigid():
     # with J0 at the origin the two conventions coincide
     out = zju_to_smpl_params(Rh[None], Th[None], np.zeros((1, 72)), np.zeros(3))
     np.testing.assert_allclose(out["transl"][0], Th, atol=1e-6)
-
-
-def make_zju(root, num_frames, w=8, h=6, D=None, n_cams=2):
-    root.mkdir(parents=True)
-    Ks = [np.array([[40.0 + c, 0, w / 2], [0, 40.0 + c, h / 2], [0, 0, 1]]) for c in range(n_cams)]
-    Rs = [rodrigues([0, 0.3 * c, 0]) for c in range(n_cams)]
-    Ts = [np.array([[100.0 * c], [-200.0], [3000.0]]) for c in range(n_cams)]  # millimetres
-    Ds = [np.zeros((5, 1)) if D is None else np.asarray(D, float).reshape(5, 1) for _ in range(n_cams)]
-    ims = []
-    for i in range(num_frames):
-        paths = [f"Camera_B{c + 1}/{i:06d}.jpg" for c in range(n_cams)]
-        ims.append({"ims": np.array(paths)})
-    np.save(root / "annots.npy", {"cams": {"K": Ks, "D": Ds, "R": Rs, "T": Ts}, "ims": np.array(ims)},
-            allow_pickle=True)
-    (root / "new_params").mkdir()
-    return Ks, Rs, Ts
-
-
-def add_zju_frame(root, i, w=8, h=6, n_cams=2, image=None, cams=None):
-    for c in range(n_cams) if cams is None else cams:
-        img = np.full((h, w, 3), 200, np.uint8) if image is None else image
-        p = root / f"Camera_B{c + 1}" / f"{i:06d}.jpg"
-        p.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(img).save(p, quality=95)
-        m1 = np.zeros((h, w), np.uint8)
-        m1[:, : w // 2] = 1  # mask/: left half, label 1
-        m2 = np.zeros((h, w), np.uint8)
-        m2[: h // 2] = 255  # mask_cihp/: top half, label 255
-        save_png(root / "mask" / f"Camera_B{c + 1}" / f"{i:06d}.png", m1)
-        save_png(root / "mask_cihp" / f"Camera_B{c + 1}" / f"{i:06d}.png", m2)
-    np.save(root / "new_params" / f"{i}.npy", {
-        "poses": np.concatenate([[0, 0, 0], np.full(69, 0.01 * i)])[None],
-        "Rh": np.array([[0.1 * i, 0.2, 0.0]]), "Th": np.array([[0.0, 0.5, float(i)]]),
-        "shapes": np.full((1, 10), 0.1)}, allow_pickle=True)
 
 
 def j0_of(betas):

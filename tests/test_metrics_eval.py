@@ -12,6 +12,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import front_camera
 
 from rmavatar.commands import main
 from rmavatar.utils import UserError
@@ -19,12 +20,9 @@ from rmavatar.utils import UserError
 SIZE = 48
 
 
-def camera_dict(n: int) -> dict:
+def camera_dict() -> dict:
     """One fixed camera looking at the Anny body (SMPL axes: y up, facing +z) from 3.2 m in front."""
-    viewmat = np.diag([1.0, -1.0, -1.0, 1.0]).astype(np.float32)  # camera looks along world -z
-    viewmat[:3, 3] = -viewmat[:3, :3] @ np.array([0.0, -0.4, 3.2], np.float32)
-    K = np.array([[70.0, 0, SIZE / 2], [0, 70.0, SIZE / 2], [0, 0, 1]], np.float32)
-    return {"K": K, "viewmat": viewmat}
+    return front_camera(SIZE, 70.0)
 
 
 def params(n: int, seed: int) -> dict:
@@ -39,17 +37,17 @@ def params(n: int, seed: int) -> dict:
 def write_dataset(path, images, masks, p, splits):
     from rmavatar.data import write_native
 
-    write_native(path, {"name": "tiny", "splits": splits, "body": "anny"}, camera_dict(len(images)), p,
+    write_native(path, {"name": "tiny", "splits": splits, "body": "anny"}, camera_dict(), p,
                  images, masks, progress=False)
     return path
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, make_train_config):
     """A run trained for two steps, and a dataset whose test frames are that run's own renders."""
     from rmavatar.avatar import load_trained
     from rmavatar.render import rasterize
-    from rmavatar.train import TrainConfig, train
+    from rmavatar.train import train
 
     root = tmp_path_factory.mktemp("eval")
     n = 4
@@ -57,19 +55,13 @@ def tiny(tmp_path_factory):
     grey = [np.full((SIZE, SIZE, 3), 0.5, np.float32)] * n
     ones = [np.ones((SIZE, SIZE), np.float32)] * n
     data = write_dataset(root / "data", grey, ones, p, {"train": [0, 1], "test": [2, 3]})
-    cfg = TrainConfig()
-    cfg.data.path = str(data)
-    cfg.optim.iters = 2
-    cfg.density.enabled = False
-    cfg.log.tensorboard = False
-    cfg.model.sh_degree = 1
-    cfg.device = "cpu"
+    cfg = make_train_config(data, 2, sh_degree=1)
     run_dir = root / "run"
     train(cfg, run_dir, progress=False)
 
     # The oracle: render the test frames directly, white background.
     run = load_trained(run_dir)
-    cam = camera_dict(n)
+    cam = camera_dict()
     renders = []
     with torch.no_grad():
         for i in range(n):

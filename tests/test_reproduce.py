@@ -1,5 +1,5 @@
 """rmavatar reproduce paper end to end on small fixture datasets in the PeopleSnapshot and ZJU-MoCap
-layouts (built by tests/test_data.py's helpers), a tiny budget and a local Ray instance: it runs the
+layouts (built by tests/helpers.py), a tiny budget and a local Ray instance: it runs the
 jobs of Tables 1 and 2 and prints our numbers next to the paper's."""
 
 import json
@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from test_data import add_zju_frame, make_peoplesnapshot, make_zju
+from helpers import add_zju_frame, make_peoplesnapshot, make_zju
 
 from rmavatar.batch.jobs import load_jobs
 from rmavatar.data.peoplesnapshot import SUBJECTS, split_frames

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 import torch
 from headless import find_browser, screenshot
-from test_animate_avatar import dance
-from test_animate_e2e import trained_run  # noqa: F401 - a session fixture: the small trained run
+from helpers import dance
 
 from rmavatar.avatar import load_trained
 from rmavatar.body import Motion, motion_to_sequence
@@ -53,7 +52,7 @@ def test_splat_arrays_match_3dgs_definitions():
 
 
 @pytest.fixture
-def viewer(trained_run):  # noqa: F811
+def viewer(trained_run):  # the small trained run: a session fixture in conftest.py
 
     poses, trans = dance(n=6, drift=3.0)
     seq = motion_to_sequence(Motion(poses[:, :3], poses[:, 3:], trans, fps=30.0))
