@@ -17,7 +17,7 @@ pose to its image (100 steps from the true poses); both also on the same test im
 captured test poses, as given and fitted from them (``WORK/captured_turn_true_images``: the captured
 dataset with the truth's images and masks), and it reports the same errors of the training poses
 the captured avatar was trained on (``training_poses``: its first pass's refined ones, and the
-refits'). --refine-poses sets the captured-data run's ``optim.refine_poses`` (auto: on, as the
+refits'). --refine-poses sets the captured-data run's ``poses.refine`` (auto: on, as the
 captured dataset says its poses are estimated); its run is ``WORK/run_captured`` for auto and
 ``WORK/run_captured_refine_{on,off}`` otherwise (``_free`` appended with --no-still). Everything goes under WORK; finished steps are reused.
 """
@@ -130,23 +130,23 @@ def with_true_images(truth: Path, captured: Path, out: Path) -> Path:
 def train_and_eval(data: Path, run: Path, truth: Path, iters: int, size: int, refine: bool | None = None,
                    captured_poses: Path | None = None) -> dict:
     from rmavatar.evaluate import evaluate_run
-    from rmavatar.evaluate.fit import FitConfig
+    from rmavatar.evaluate.fit import PoseFitConfig
     from rmavatar.train import TrainConfig, train
 
     if not (run / "checkpoints" / "last.pt").is_file():
         cfg = TrainConfig()
         cfg.data.path, cfg.data.size, cfg.optim.iters = str(data), size, iters
         cfg.seed, cfg.density.max_gaussians = 0, 40_000
-        cfg.optim.refine_poses = refine
+        cfg.poses.refine = refine
         t = time.perf_counter()
         train(cfg, run, progress=True)
         print(f"trained {run} in {time.perf_counter() - t:.0f} s")
     out = {}
-    for split, fit in (("test", None), ("novel_pose", None), ("test_fitted", FitConfig(smooth=0))):
+    for split, fit in (("test", None), ("novel_pose", None), ("test_fitted", PoseFitConfig(smooth=0))):
         res = evaluate_run(run, data=str(truth), split=split.removesuffix("_fitted"), progress=False, fit=fit)
         out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
     if captured_poses is not None:  # the same test images, posed and fitted from the captured test poses
-        for split, fit in (("test_captured_poses", None), ("test_fitted_from_captured", FitConfig(smooth=0))):
+        for split, fit in (("test_captured_poses", None), ("test_fitted_from_captured", PoseFitConfig(smooth=0))):
             res = evaluate_run(run, data=str(captured_poses), split="test", progress=False, fit=fit)
             out[split] = {k: round(float(v), 4) for k, v in res["mean"].items()}
     return out
@@ -165,7 +165,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from rmavatar.capture import CaptureConfig, capture
-    from rmavatar.capture.fit import FitConfig
+    from rmavatar.capture.fit import BodyFitConfig
     from rmavatar.data import load_dataset
     from rmavatar.data.synth import SynthConfig, synthesize
 
@@ -187,7 +187,7 @@ def main() -> None:
             write_video(truth, video, frames, ds.fps or 7.5)
         if not (out / "meta.yaml").is_file():
             still = name == "turn" and not args.no_still
-            fit = FitConfig().still() if still else FitConfig()
+            fit = BodyFitConfig().still() if still else BodyFitConfig()
             # the turn's test tail is the truth's test split, so that no test frame is trained on
             test = len(ds.splits["test"]) / len(frames) if name == "turn" else 0.2
             s = capture(video, out, CaptureConfig(fov=fov, fit=fit, test_fraction=test), progress=True)

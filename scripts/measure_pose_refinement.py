@@ -4,7 +4,7 @@
     PYTHONPATH=src python scripts/measure_pose_refinement.py WORK NOISY [optim.KEY=VALUE ...]
 
 Trains the local-rectifier avatar on NOISY with pose refinement on (256 px, 1,000 iterations, at most
-40k Gaussians, seed 0, main's defaults unless a setting is given, e.g. ``optim.pose_pass=0.0``) into
+40k Gaussians, seed 0, main's defaults unless a setting is given, e.g. ``poses.first_pass=0.0``) into
 WORK/run, then scores it: its own first 30 training frames (with the poses it trained on), all test and
 novel_pose frames with the dataset's (noisy) poses, and the same after ``eval --fit-poses`` (100
 steps). Writes WORK/results.json (PSNR/SSIM/LPIPS, pose errors, seconds) and the error images under
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from rmavatar.bench.quality import variant_config
-from rmavatar.evaluate.fit import FitConfig
+from rmavatar.evaluate.fit import PoseFitConfig
 from rmavatar.evaluate.run import evaluate_run
 from rmavatar.train import train
 from rmavatar.utils.config import apply_overrides
@@ -32,7 +32,7 @@ def main(argv: list[str]) -> None:
     work, noisy = Path(argv[0]), argv[1]
     run = work / "run"
     cfg = variant_config("local_rectifier", noisy, 256, 1000, 0, 40_000, 0, "cpu")
-    cfg.optim.refine_poses = True
+    cfg.poses.refine = True
     cfg = apply_overrides(cfg, {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in argv[2:])}, "settings")
     out: dict = {"settings": argv[2:], "data": noisy}
 
@@ -54,7 +54,7 @@ def main(argv: list[str]) -> None:
     for split in ("test", "novel_pose"):
         started = time.perf_counter()
         out[f"{split}_fit"] = keep(evaluate_run(run, split=split, out_dir=work / f"img_{split}_fit",
-                                                progress=False, fit=FitConfig()))
+                                                progress=False, fit=PoseFitConfig()))
         out[f"{split}_fit_seconds"] = time.perf_counter() - started
         save()
     print(json.dumps({k: v["mean"] if isinstance(v, dict) and "mean" in v else v for k, v in out.items()

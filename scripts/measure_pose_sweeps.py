@@ -4,9 +4,9 @@
     rmavatar synth NOISY --size 256 --seed 0 --pose-noise 3
     PYTHONPATH=src python scripts/measure_pose_sweeps.py WORK NAME NOISY [TRUE] [optim.KEY=VALUE ...]
 
-Trains the local-rectifier avatar on NOISY (or, with TRUE given and ``optim.refine_poses=False``, on
+Trains the local-rectifier avatar on NOISY (or, with TRUE given and ``poses.refine=False``, on
 the true poses) at 128 px for 500 iterations with at most 20k Gaussians, seed 0, the settings given
-applied (e.g. ``optim.refine_poses=True "optim.pose_sweeps=(0.2,0.45)"``), then reports: the refined
+applied (e.g. ``poses.refine=True "poses.fits=(0.2,0.45)"``), then reports: the refined
 training poses' error, the PSNR on the avatar's own first 30 training frames (with its refined poses),
 and the PSNR on the first 8 test frames of NOISY after ``eval --fit-poses`` (100 steps) from their
 noisy poses. Writes WORK/NAME/run and WORK/NAME/result.json; prints the result.
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from rmavatar.bench.quality import variant_config
-from rmavatar.evaluate.fit import FitConfig
+from rmavatar.evaluate.fit import PoseFitConfig
 from rmavatar.evaluate.run import evaluate_run
 from rmavatar.train import train
 from rmavatar.utils.config import apply_overrides
@@ -46,7 +46,7 @@ def main(argv: list[str]) -> None:
         e = json.loads(errors.read_text())
         out["training_pose_error_deg"] = (e["refined"] or e["given"])["joint_angle_deg"]
     out["own_training_frames_psnr"] = evaluate_run(run, split="train", max_frames=30, progress=False)["mean"]["psnr"]
-    fitted = evaluate_run(run, data=noisy, split="test", max_frames=8, progress=False, fit=FitConfig())
+    fitted = evaluate_run(run, data=noisy, split="test", max_frames=8, progress=False, fit=PoseFitConfig())
     out["fitted_test_psnr"] = fitted["mean"]["psnr"]
     out["fitted_test_pose_error_deg"] = fitted["pose_error"]["used"]["joint_angle_deg"]
     (work / name / "result.json").write_text(json.dumps(out, indent=1))

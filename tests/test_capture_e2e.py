@@ -14,6 +14,8 @@ import yaml
 from rmavatar.capture.fit import STILL_HOLD_POSE, STILL_HOLD_UP, STILL_KEYPOINTS
 from rmavatar.commands import main
 
+from helpers import tiny_train_config
+
 SIZE = 128
 TRAIN, TEST = 24, 6
 
@@ -71,7 +73,7 @@ def fitted_vs_true(truth, out):
 def test_capture_then_train(captured, tmp_path):
     from rmavatar.data import load_dataset
     from rmavatar.evaluate import evaluate_run
-    from rmavatar.train import TrainConfig, train
+    from rmavatar.train import train
 
     truth, out = captured
     ds = load_dataset(out)
@@ -87,20 +89,15 @@ def test_capture_then_train(captured, tmp_path):
     # weighed 20; 1.03 % and 35 mm without --still; MediaPipe's own landmarks are 1.1 % off at the median)
     assert e2 < 1.6 and e3 < 75, (e2, e3)
 
-    cfg = TrainConfig()
-    cfg.data.path = str(out)
-    cfg.optim.iters = 200
-    # Two passes with refinement and refits, as `rmavatar train` runs on captured data, but sweeps and
-    # refits of 10 steps (the default 30 made the sweeps most of this test's time: 226 s in CI, then 100 s)
-    cfg.optim.pose_sweep_steps = cfg.optim.pose_refit_steps = 10
-    cfg.density.enabled = False
-    cfg.log.tensorboard = False
-    cfg.device = "cpu"
+    cfg = tiny_train_config(out, 200)  # no densification, on the CPU
+    # Two passes with refinement and pose fits, as `rmavatar train` runs on captured data, but fits of 10
+    # steps (the default 30 made them most of this test's time: 226 s in CI, then 100 s)
+    cfg.poses.fit_steps = cfg.poses.held_fit_steps = 10
     train(cfg, tmp_path / "run", progress=False)
     res = evaluate_run(tmp_path / "run", split="test", progress=False)
     # measured: 21.37 dB on the captured test tail (200 iterations at 128 px, two passes, 10-step sweeps
     # and refits, fitting without the mask term; 21.43 before --still weighed the keypoints 0.3, 21.55
-    # before refits and optim.pose_fit_mask 0; 21.29 before the capture's outline term, 20.44 before
+    # before refits and poses.fit_mask 0; 21.29 before the capture's outline term, 20.44 before
     # --still held the up axis and the silhouette weighed 20, 20.57 without --still, 21.0 before pose
     # refinement existed; the default 30-step sweeps were not measured here)
     assert res["mean"]["psnr"] > 20.0, res["mean"]

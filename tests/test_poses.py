@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections, joint_angle_errors, pose_error
 from rmavatar.body.corrections import pose_corrections
 from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
-from rmavatar.train.optim import OptimConfig
+from rmavatar.train.pose_refine import PoseConfig
 from rmavatar.utils import UserError
 
 
@@ -95,82 +95,101 @@ def test_corrections_have_finite_gradients_at_zero():
 def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     for value in (None, True, False):
         cfg = TrainConfig()
-        cfg.optim.refine_poses = value
-        cfg.optim.lr_pose = 0.02
+        cfg.poses.refine = value
+        cfg.poses.lr_rotation = 0.02
         save_config(cfg, tmp_path / "c.yaml")
         back = load_config(tmp_path / "c.yaml")
-        assert back.optim.refine_poses is value and back.optim.lr_pose == 0.02
+        assert back.poses.refine is value and back.poses.lr_rotation == 0.02
         assert to_dict(from_dict(TrainConfig, to_dict(cfg))) == to_dict(cfg)
-    assert OptimConfig().refines_poses(True) and not OptimConfig().refines_poses(False)
-    assert not OptimConfig(refine_poses=False).refines_poses(True)
-    assert OptimConfig(refine_poses=True).refines_poses(False)
-    (tmp_path / "bad.yaml").write_text("optim:\n  refine_poses: maybe\n")
-    with pytest.raises(UserError, match="refine_poses"):
+    assert PoseConfig().refines(True) and not PoseConfig().refines(False)
+    assert not PoseConfig(refine=False).refines(True)
+    assert PoseConfig(refine=True).refines(False)
+    (tmp_path / "bad.yaml").write_text("poses:\n  refine: maybe\n")
+    with pytest.raises(UserError, match="poses.refine"):
         load_config(tmp_path / "bad.yaml")
-    with pytest.raises(UserError, match="pose_warmup"):
-        OptimConfig(pose_warmup=1.0).validate()
+    with pytest.raises(UserError, match="poses.warmup"):
+        PoseConfig(warmup=1.0).validate()
     for bad in (-1, 1.5, True):
-        with pytest.raises(UserError, match="smooth_poses"):
-            OptimConfig(smooth_poses=bad).validate()
+        with pytest.raises(UserError, match="poses.smooth"):
+            PoseConfig(smooth=bad).validate()
     for bad in (0.75, [0.0], [1.0], ["x"], [True]):
-        with pytest.raises(UserError, match="pose_sweeps"):
-            OptimConfig(pose_sweeps=bad).validate()
+        with pytest.raises(UserError, match="poses.fits"):
+            PoseConfig(fits=bad).validate()
     for bad in (0.75, [0.0], [1.0], ["x"], [True]):
-        with pytest.raises(UserError, match="pose_refits"):
-            OptimConfig(pose_refits=bad).validate()
+        with pytest.raises(UserError, match="poses.held_fits"):
+            PoseConfig(held_fits=bad).validate()
     for bad in (0.0, -1e-3, float("nan"), True):
-        with pytest.raises(UserError, match="pose_refit_lr"):
-            OptimConfig(pose_refit_lr=bad).validate()
-    with pytest.raises(UserError, match="pose_sweep_steps"):
-        OptimConfig(pose_sweep_steps=0).validate()
+        with pytest.raises(UserError, match="held_fit_lr_rotation"):
+            PoseConfig(held_fit_lr_rotation=bad).validate()
+    with pytest.raises(UserError, match="poses.fit_steps"):
+        PoseConfig(fit_steps=0).validate()
     for bad in (-1.0, float("nan"), True):
-        with pytest.raises(UserError, match="pose_fit_mask"):
-            OptimConfig(pose_fit_mask=bad).validate()
-    OptimConfig(pose_fit_mask=0.0).validate()
+        with pytest.raises(UserError, match="poses.fit_mask"):
+            PoseConfig(fit_mask=bad).validate()
+    PoseConfig(fit_mask=0.0).validate()
     for bad in (-0.1, 1.5, True, "half"):
-        with pytest.raises(UserError, match="pose_pass"):
-            OptimConfig(pose_pass=bad).validate()
+        with pytest.raises(UserError, match="poses.first_pass"):
+            PoseConfig(first_pass=bad).validate()
     # The pose pass runs only with refinement, round(fraction * iters) long, at least one iteration.
-    assert OptimConfig(iters=1000).pose_pass_iters(True) == 500
-    assert OptimConfig(iters=1000).pose_pass_iters(False) == 0
-    assert OptimConfig(iters=1000, pose_pass=0.0).pose_pass_iters(True) == 0
-    assert OptimConfig(iters=3, pose_pass=0.1).pose_pass_iters(True) == 1
-    (tmp_path / "sweeps.yaml").write_text("optim:\n  pose_sweeps: [0.5, 0.8]\n")
-    cfg = load_config(tmp_path / "sweeps.yaml").validate()
-    assert cfg.optim.pose_sweeps == (0.5, 0.8)
-    cfg.optim.iters = 1000
-    assert cfg.optim.pose_sweep_iterations() == {500, 800}
+    assert PoseConfig().first_pass_iters(1000, True) == 500
+    assert PoseConfig().first_pass_iters(1000, False) == 0
+    assert PoseConfig(first_pass=0.0).first_pass_iters(1000, True) == 0
+    assert PoseConfig(first_pass=0.1).first_pass_iters(3, True) == 1
+    (tmp_path / "fits.yaml").write_text("poses:\n  fits: [0.5, 0.8]\n")
+    cfg = load_config(tmp_path / "fits.yaml").validate()
+    assert cfg.poses.fits == (0.5, 0.8)
+    assert cfg.poses.fit_iterations(1000) == {500, 800}
+
+
+def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
+    """Before checkpoint version 5 pose refinement's settings were in "optim" (pose_sweeps, pose_refits,
+    pose_refit_lr with an unwritten 1/40 for translations, ...): a hand-written config of that layout
+    reads as today's, missing settings at their defaults; a run's own unstamped RUN/config.yaml
+    (``as_trained``) gets the values its run was trained with for settings it predates."""
+    (tmp_path / "old.yaml").write_text("optim:\n  iters: 7\n  refine_poses: true\n  pose_sweeps: [0.5, 0.8]\n"
+                                       "  pose_refit_lr: 0.004\n")
+    cfg = load_config(tmp_path / "old.yaml")
+    assert cfg.optim.iters == 7 and cfg.poses.refine is True and cfg.poses.fits == (0.5, 0.8)
+    assert cfg.poses.held_fit_lr_rotation == 0.004 and cfg.poses.held_fit_lr_translation == 0.004 / 40
+    assert cfg.poses.held_fits == PoseConfig().held_fits and cfg.poses.smooth == PoseConfig().smooth
+    trained = load_config(tmp_path / "old.yaml", as_trained=True)
+    assert trained.poses.held_fits == () and trained.poses.smooth == 0 and trained.poses.first_pass == 0
+    assert trained.poses.fit_mask == 1.0 and trained.poses.fits == (0.5, 0.8)
+    (tmp_path / "bad.yaml").write_text("optim:\n  refine_poses: maybe\n")
+    with pytest.raises(UserError, match="poses.refine"):
+        load_config(tmp_path / "bad.yaml")
+    save_config(cfg, tmp_path / "new.yaml")  # written stamped: read back as it is, also as a run's own
+    assert (tmp_path / "new.yaml").read_text().startswith("version: 5\n")
+    assert to_dict(load_config(tmp_path / "new.yaml", as_trained=True)) == to_dict(cfg)
 
 
 def test_a_sweep_on_an_opacity_reset_runs_before_it():
-    """1,000 steps with the paper's schedule reset opacities at 200, 300, ..., 600: a sweep that falls on
-    one of them fits the avatar one step earlier, before it turns nearly transparent; others stay."""
+    """1,000 steps with the paper's schedule reset opacities at 200, 300, ..., 600: a pose fit that falls
+    on one of them fits the avatar one step earlier, before it turns nearly transparent; others stay."""
     from rmavatar.train.density import DensityConfig
-    from rmavatar.train.optim import OptimConfig
 
-    optim = OptimConfig(iters=1000, pose_sweeps=(0.3, 0.45, 0.6, 0.75)).validate()
+    poses = PoseConfig(fits=(0.3, 0.45, 0.6, 0.75), held_fits=(0.5, 0.8)).validate()
     schedule = DensityConfig().schedule(1000)
     assert [s for s in range(1, 1001) if schedule.reset_at(s)] == [200, 300, 400, 500, 600]
-    assert optim.pose_sweep_iterations(schedule) == {299, 450, 599, 750}
-    assert optim.pose_sweep_iterations() == {300, 450, 600, 750}
-    refits = OptimConfig(iters=1000, pose_refits=(0.5, 0.8)).validate().pose_refits
-    assert optim.pose_sweep_iterations(schedule, refits) == {499, 800}  # the second pass's refits, the same rule
+    assert poses.fit_iterations(1000, schedule) == {299, 450, 599, 750}
+    assert poses.fit_iterations(1000) == {300, 450, 600, 750}
+    assert poses.fit_iterations(1000, schedule, held=True) == {499, 800}  # the second pass's, the same rule
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():
-    cfg = OptimConfig(iters=100, pose_warmup=0.2, lr_pose_final_scale=0.1)
-    assert cfg.pose_warmup_steps() == 20
-    assert cfg.pose_lr_scale(0) == 0.0 and cfg.pose_lr_scale(19) == 0.0
-    assert cfg.pose_lr_scale(20) == pytest.approx(1.0)
-    assert cfg.pose_lr_scale(100) == pytest.approx(0.1)
-    assert cfg.pose_lr_scale(60) == pytest.approx(math.sqrt(0.1))  # log-linear: halfway is the geometric mean
+    cfg = PoseConfig(warmup=0.2, lr_final_scale=0.1)
+    assert cfg.warmup_steps(100) == 20
+    assert cfg.lr_scale(0, 100) == 0.0 and cfg.lr_scale(19, 100) == 0.0
+    assert cfg.lr_scale(20, 100) == pytest.approx(1.0)
+    assert cfg.lr_scale(100, 100) == pytest.approx(0.1)
+    assert cfg.lr_scale(60, 100) == pytest.approx(math.sqrt(0.1))  # log-linear: halfway is the geometric mean
 
 
 def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     from rmavatar.train.poses import PoseRefiner
 
-    cfg = OptimConfig(iters=10, pose_warmup=0.0, lr_pose=0.01, lr_pose_transl=0.002, lr_pose_final_scale=1.0)
-    ref = PoseRefiner(_random_poses(3), None, cfg, torch.device("cpu"))
+    cfg = PoseConfig(warmup=0.0, lr_rotation=0.01, lr_translation=0.002, lr_final_scale=1.0)
+    ref = PoseRefiner(_random_poses(3), None, cfg, 10, torch.device("cpu"))
     grad = torch.zeros(3, CORRECTION_DIM)
     grad[1] = torch.linspace(-1, 1, CORRECTION_DIM) + 0.01
     ref.delta.grad = grad.clone()
@@ -187,11 +206,11 @@ def test_per_frame_adam_moves_only_the_trained_frame_along_its_gradient():
     assert ref.delta[0].abs().sum() == 0 and ref.delta[2].abs().sum() == 0
     assert ref.steps.tolist() == [0, 2, 0] and ref.delta.grad is None
     # A state dict restores exactly; a changed dataset pose is refused.
-    other = PoseRefiner(_random_poses(3), None, cfg, torch.device("cpu"))
+    other = PoseRefiner(_random_poses(3), None, cfg, 10, torch.device("cpu"))
     other.load_state_dict(ref.state_dict(), "ckpt")
     assert torch.equal(other.delta, ref.delta) and torch.equal(other.steps, ref.steps)
     with pytest.raises(UserError, match="changed"):
-        PoseRefiner(_random_poses(3, seed=5), None, cfg, torch.device("cpu")).load_state_dict(ref.state_dict(), "ckpt")
+        PoseRefiner(_random_poses(3, seed=5), None, cfg, 10, torch.device("cpu")).load_state_dict(ref.state_dict(), "ckpt")
     # A pose sweep's fitted poses become the corrected poses, and every frame's Adam starts afresh.
     target = _random_poses(3, seed=9)
     ref.set_poses(target)
@@ -235,7 +254,7 @@ def test_per_joint_adam_moves_each_joint_along_its_own_gradient():
 
 
 def test_fit_config_refuses_bad_settings():
-    from rmavatar.evaluate.fit import FitConfig
+    from rmavatar.evaluate.fit import PoseFitConfig
 
     for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
                        ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"smooth": -1}, "smoothing"),
@@ -243,17 +262,16 @@ def test_fit_config_refuses_bad_settings():
                        ({"lr_rotation": -0.01}, "fit.lr_rotation"), ({"lr_translation": float("nan")}, "finite"),
                        ({"final_scale": 0.0}, "fit.final_scale"), ({"silhouette": float("inf")}, "finite")):
         with pytest.raises(UserError, match=match):
-            FitConfig(**bad).validate()
-    assert "4x4 then 2x2 then 1x1" in FitConfig().protocol()["loss"]
-    assert "0.01 x sum of the squared joint corrections" in FitConfig().protocol()["loss"]
+            PoseFitConfig(**bad).validate()
+    assert "4x4 then 2x2 then 1x1" in PoseFitConfig().protocol()["loss"]
+    assert "0.01 x sum of the squared joint corrections" in PoseFitConfig().protocol()["loss"]
 
 
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():
-    from rmavatar.avatar.trained import CHECKPOINT_VERSION, _MIGRATIONS
+    from rmavatar.avatar.run import MIGRATIONS
 
-    assert CHECKPOINT_VERSION == 4
-    migrated = _MIGRATIONS[3]({"format": "rmavatar-checkpoint", "version": 3, "iteration": 5})
-    assert migrated["version"] == 4 and migrated["poses"] is None and migrated["iteration"] == 5
+    migrated = MIGRATIONS[3]({"format": "rmavatar-checkpoint", "version": 3, "iteration": 5})
+    assert migrated["poses"] is None and migrated["iteration"] == 5
 
 
 def test_smoothing_removes_jitter_but_keeps_fast_motion():

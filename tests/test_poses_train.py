@@ -12,35 +12,32 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
-from rmavatar.train.config import TrainConfig
-import rmavatar.train.trainer as trainer_module
-from rmavatar.train.trainer import Trainer, _first_pass, train
+from rmavatar.avatar import load_trained
+from rmavatar.avatar.run import RunFolder, read_checkpoint
+from rmavatar.train import train
+from rmavatar.train.frames import FrameCache
+from rmavatar.train.pose_refine import PoseRefinement
+from rmavatar.train.trainer import Trainer
+import rmavatar.avatar.run as run_module
+import rmavatar.train.pipeline as pipeline
+from rmavatar.train.pipeline import first_pass_config
+
+from helpers import tiny_train_config
 
 SIZE = 48
 
 
 @pytest.fixture(scope="module")
-def noisy(tmp_path_factory):
-    from rmavatar.data.synth import SynthConfig, synthesize
-
+def noisy(tmp_path_factory, make_synth_subject):
     out = tmp_path_factory.mktemp("synth") / "noisy"
-    synthesize(out, SynthConfig(size=SIZE, seed=0, train=3, test=1, novel_pose=1, ss=1, pose_noise=10.0),
-               progress=False)  # fmt: skip
-    return str(out)
+    return str(make_synth_subject(out, size=SIZE, seed=0, train=3, test=1, novel_pose=1, ss=1, pose_noise=10.0))
 
 
 def _cfg(data, iters):
-    cfg = TrainConfig()
-    cfg.data.path = data
-    cfg.data.size = SIZE
-    cfg.optim.iters = iters
-    cfg.optim.refine_poses = True
-    cfg.optim.pose_warmup = 0.0  # refine from the first step, so a short run exercises it
-    cfg.optim.pose_pass = 0.0  # one pass: these tests are of the run that refines (two passes: below)
-    cfg.threads = 1
-    cfg.log.tensorboard = False
-    cfg.log.preview_every = 10**6
+    cfg = tiny_train_config(data, iters, size=SIZE, density=None, device=None, threads=1, preview_every=10**6)
+    cfg.poses.refine = True
+    cfg.poses.warmup = 0.0  # refine from the first step, so a short run exercises it
+    cfg.poses.first_pass = 0.0  # one pass: these tests are of the run that refines (two passes: below)
     return cfg
 
 
@@ -51,7 +48,7 @@ def _train_interrupted(cfg, run, monkeypatch, iteration, where=None):
 
     def step(self):
         out = original(self)
-        if (where is None or self.run_dir.name == where) and self.iteration + 1 == iteration:
+        if (where is None or self.run_folder.path.name == where) and self.iteration + 1 == iteration:
             os.kill(os.getpid(), signal.SIGINT)
         return out
 
@@ -60,14 +57,39 @@ def _train_interrupted(cfg, run, monkeypatch, iteration, where=None):
         return train(cfg, run, progress=False)
 
 
-def _forget_optim_settings(checkpoint: Path, keys) -> None:
-    """Rewrite ``checkpoint`` as one written before the optim settings ``keys`` existed."""
-    from rmavatar.train.checkpoint import save_checkpoint
+def _checkpoint(run: Path):
+    return RunFolder(run).read_checkpoint()
 
-    payload = read_checkpoint(checkpoint)
+
+def _forget_optim_settings(checkpoint: Path, keys) -> None:
+    """Rewrite ``checkpoint`` as a version-4 one written before the pose settings ``keys`` (their version-4
+    names, in "optim") existed."""
+    from rmavatar.avatar.run import POSE_KEYS_V4
+
+    payload = read_checkpoint(checkpoint).to_payload()
+    poses = payload["config"].pop("poses")
+    optim = payload["config"]["optim"]
+    for old, new in POSE_KEYS_V4.items():
+        optim[old] = poses.pop(new)
+    optim["pose_refit_lr"] = poses.pop("held_fit_lr_rotation")
     for key in keys:
-        del payload["config"]["optim"][key]
-    save_checkpoint(checkpoint, {k: v for k, v in payload.items() if k not in ("format", "version")})
+        del optim[key]
+    torch.save({**payload, "version": 4}, checkpoint)
+
+
+def _fits_seen(monkeypatch, record):
+    """Call ``record(refinement, iteration, before, after, avatar, body, frames)`` at every pose fit."""
+    original = PoseRefinement.before_step
+
+    def before_step(self, iteration, avatar, body, frames, background):
+        due = iteration in self.fit_at
+        before = self.poses() if due else None
+        held = original(self, iteration, avatar, body, frames, background)
+        if due:
+            record(self, iteration, before, self.poses(), avatar, body, frames)
+        return held
+
+    monkeypatch.setattr(PoseRefinement, "before_step", before_step)
 
 
 def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypatch):
@@ -78,8 +100,8 @@ def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypat
     first = _train_interrupted(_cfg(noisy, n), tmp_path / "split", monkeypatch, n // 2)
     assert first.interrupted and first.iteration == n // 2
     train(None, tmp_path / "split", resume=True, progress=False)
-    a = read_checkpoint(checkpoint_path(tmp_path / "whole"))["poses"]
-    b = read_checkpoint(checkpoint_path(tmp_path / "split"))["poses"]
+    a = _checkpoint(tmp_path / "whole").poses
+    b = _checkpoint(tmp_path / "split").poses
     assert a["delta"].abs().sum() > 0  # the corrections did move
     for key in ("delta", "exp_avg", "exp_avg_sq", "steps"):
         assert torch.equal(a[key], b[key]), key
@@ -93,8 +115,8 @@ def test_resume_keeps_the_refined_poses_bit_identical(noisy, tmp_path, monkeypat
     # Resuming with refinement switched off is refused (the config is the run's).
     from rmavatar.utils import UserError
 
-    with pytest.raises(UserError, match="refine_poses"):
-        train(None, tmp_path / "whole", resume=True, overrides=[(False, "optim", "refine_poses")], progress=False)
+    with pytest.raises(UserError, match="poses.refine"):
+        train(None, tmp_path / "whole", resume=True, overrides={"poses.refine": False}, progress=False)
 
 
 @pytest.mark.parametrize("sweeps", [(0.75,), None], ids=["one-late-sweep", "default-sweeps"])
@@ -110,9 +132,9 @@ def test_refinement_reduces_the_pose_error(noisy, tmp_path, sweeps):
     import json
 
     cfg = _cfg(noisy, 60)
-    cfg.optim.pose_warmup = 0.25
+    cfg.poses.warmup = 0.25
     if sweeps is not None:
-        cfg.optim.pose_sweeps = sweeps
+        cfg.poses.fits = sweeps
     train(cfg, tmp_path / "run", progress=False)
     err = json.loads((tmp_path / "run" / "pose_error.json").read_text())
     given, refined = err["given"], err["refined"]
@@ -127,17 +149,17 @@ def test_refinement_reduces_the_pose_error(noisy, tmp_path, sweeps):
 
 
 def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_path):
-    from rmavatar.evaluate.fit import FitConfig
+    from rmavatar.evaluate.fit import PoseFitConfig
     from rmavatar.evaluate.run import evaluate_run
 
     cfg = _cfg(noisy, 30)
-    cfg.optim.refine_poses = False
+    cfg.poses.refine = False
     train(cfg, tmp_path / "run", progress=False)
-    ckpt = checkpoint_path(tmp_path / "run")
+    ckpt = RunFolder(tmp_path / "run").checkpoint
     before = hashlib.sha256(ckpt.read_bytes()).hexdigest()
     plain = evaluate_run(tmp_path / "run", split="train", device="cpu", progress=False)
     fitted = evaluate_run(tmp_path / "run", split="train", device="cpu", progress=False,
-                          fit=FitConfig(steps=15, batch=3, lr_rotation=0.01))
+                          fit=PoseFitConfig(steps=15, batch=3, lr_rotation=0.01))
     assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == before
     assert fitted["protocol"]["fit_poses"] == 15 and plain["protocol"]["fit_poses"] is None
     assert fitted["protocol"]["fit_poses_settings"]["smooth_frames"] == 2
@@ -148,28 +170,28 @@ def test_fit_poses_leaves_the_checkpoint_untouched_and_fits_better(noisy, tmp_pa
 
 
 def test_a_run_from_before_pose_smoothing_and_sweeps_resumes_as_it_was_trained(noisy, tmp_path, monkeypatch):
-    """A checkpoint whose config predates optim.smooth_poses, optim.pose_sweeps and optim.pose_pass
+    """A checkpoint whose config predates poses.smooth, poses.fits and poses.first_pass
     refined the dataset's poses as given, without sweeps, in one pass: it resumes as smooth_poses 0 (the
     default 2 would change the poses it refines and be refused), no sweeps and one pass (the default
     would hold its poses still)."""
     cfg = _cfg(noisy, 4)
-    cfg.optim.smooth_poses = 0
-    cfg.optim.pose_sweeps = ()
+    cfg.poses.smooth = 0
+    cfg.poses.fits = ()
     train(cfg, tmp_path / "old", progress=False)
-    path = checkpoint_path(tmp_path / "old")
+    path = RunFolder(tmp_path / "old").checkpoint
     _forget_optim_settings(path, ("smooth_poses", "pose_sweeps", "pose_pass"))
     swept = []
-    monkeypatch.setattr(Trainer, "sweep_poses", lambda self: swept.append(self.iteration))
-    done = train(None, tmp_path / "old", resume=True, overrides=[(8, "optim", "iters")], progress=False)
+    _fits_seen(monkeypatch, lambda refinement, iteration, *rest: swept.append(iteration))
+    done = train(None, tmp_path / "old", resume=True, overrides={"optim.iters": 8}, progress=False)
     assert done.iteration == 8 and swept == []
-    saved = read_checkpoint(path)["config"]["optim"]
-    assert saved["smooth_poses"] == 0 and tuple(saved["pose_sweeps"]) == () and saved["pose_pass"] == 0
+    saved = read_checkpoint(path).config["poses"]
+    assert saved["smooth"] == 0 and tuple(saved["fits"]) == () and saved["first_pass"] == 0
     assert not (tmp_path / "old" / "pose_pass").exists()
 
 
 def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_path, monkeypatch):
-    """A two-pass run whose configs (RUN/config.yaml, the first pass's checkpoint) predate optim.pose_refits
-    and optim.pose_fit_mask, stopped in its first pass, resumes as it was trained: its sweep weighs the
+    """A two-pass run whose configs (RUN/config.yaml, the first pass's checkpoint) predate poses.held_fits
+    and poses.fit_mask, stopped in its first pass, resumes as it was trained: its sweep weighs the
     mask 1 and its second pass has no refits (the defaults, 0 and [0.4, 0.7], would change both)."""
     import yaml
 
@@ -177,23 +199,27 @@ def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_
     from rmavatar.utils.config import read_yaml
 
     cfg = _two_pass_cfg(noisy)
-    cfg.optim.pose_fit_mask = 1.0
+    cfg.poses.fit_mask = 1.0
     run = tmp_path / "old"  # stopped before the first pass's sweep (after its iteration 2)
     assert _train_interrupted(cfg, run, monkeypatch, 1).interrupted
-    _forget_optim_settings(checkpoint_path(run / "pose_pass"), ("pose_refits", "pose_fit_mask"))
-    saved = read_yaml(run / "config.yaml")
-    del saved["optim"]["pose_refits"], saved["optim"]["pose_fit_mask"]
+    _forget_optim_settings(RunFolder(run / "pose_pass").checkpoint, ("pose_refits", "pose_fit_mask"))
+    saved = read_yaml(run / "config.yaml")  # as written before configs were stamped, in version 4's layout
+    del saved["version"]
+    poses = saved.pop("poses")
+    saved["optim"].update(refine_poses=poses["refine"], smooth_poses=poses["smooth"],
+                          pose_pass=poses["first_pass"], pose_sweeps=list(poses["fits"]),
+                          pose_sweep_steps=poses["fit_steps"], pose_warmup=poses["warmup"])
     (run / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
     fits, original_fit = [], fit_module.fit_poses
     monkeypatch.setattr(fit_module, "fit_poses", lambda *a, **k: fits.append(a[6].silhouette) or original_fit(*a, **k))
     done = train(None, run, resume=True, progress=False)
     assert done.iteration == 8 and fits == [1.0]  # the first pass's one sweep; no refits
-    final = read_checkpoint(checkpoint_path(run))["config"]["optim"]
-    assert tuple(final["pose_refits"]) == () and final["pose_fit_mask"] == 1.0
+    final = _checkpoint(run).config["poses"]
+    assert tuple(final["held_fits"]) == () and final["fit_mask"] == 1.0
 
 
 def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_path, monkeypatch):
-    """optim.pose_sweeps [0.8] on a 40-step run: one sweep, after iteration 32. Its fitted poses render
+    """poses.fits [0.8] on a 40-step run: one sweep, after iteration 32. Its fitted poses render
     the frames closer to their images than the poses before it (mean |render - target| with the avatar
     of that moment) and are no further from the true poses (10 degrees of noise per axis; a 48 px
     avatar this young says little more about them)."""
@@ -202,18 +228,16 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
     from rmavatar.data.synth import true_poses
 
     cfg = _cfg(noisy, 40)
-    cfg.optim.pose_sweeps = (0.8,)
-    cfg.optim.pose_sweep_steps = 30
+    cfg.poses.fits = (0.8,)
+    cfg.poses.fit_steps = 30
     seen = []
-    original = Trainer.sweep_poses
 
-    def sweep(self):
-        before = self.poses.poses()
-        original(self)
-        after = self.poses.poses()
-        seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
+    def record(refinement, iteration, before, after, avatar, body, frames):
+        betas = refinement.refiner.betas
+        seen.append((iteration, before, after, _image_error(avatar, body, betas, frames, before),
+                     _image_error(avatar, body, betas, frames, after)))
 
-    monkeypatch.setattr(Trainer, "sweep_poses", sweep)
+    _fits_seen(monkeypatch, record)
     train(cfg, tmp_path / "run", progress=False)
     assert [s[0] for s in seen] == [32]
     _, before, after, err_before, err_after = seen[0]
@@ -225,33 +249,34 @@ def test_a_pose_sweep_fits_every_training_pose_once_at_its_iteration(noisy, tmp_
 
 
 @torch.no_grad()
-def _image_error(trainer, poses):
-    """Mean |render - target| over the training frames, rendered by ``trainer``'s avatar in ``poses``."""
+def _image_error(avatar, body, betas, frames, poses):
+    """Mean |render - target| over the training ``frames``, rendered by ``avatar`` in ``poses``."""
+    from rmavatar.avatar import render_frame
     from rmavatar.body import posed_vertices
-    from rmavatar.render.gaussians import render_gaussians
+    from rmavatar.render import composite
 
     bg = torch.ones(3)
-    verts = posed_vertices(trainer.body, poses, trainer.poses.betas)
+    verts = posed_vertices(body, poses, betas)
     errs = []
     for i in range(len(poses)):
-        gs = trainer.avatar(verts[i], poses.body_pose[i])
-        image = render_gaussians(gs, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
-                                 background=bg)[0]
-        errs.append((image - trainer.target(i, bg)).abs().mean())
+        f = frames[i]
+        image = render_frame(avatar, verts[i], poses.body_pose[i], f.camera, bg).image
+        target = composite(torch.as_tensor(f.image, dtype=torch.float32), torch.as_tensor(f.mask, dtype=torch.float32), bg)
+        errs.append((image - target).abs().mean())
     return float(torch.stack(errs).mean())
 
 
 def _two_pass_cfg(data):
     cfg = _cfg(data, 8)
-    cfg.optim.pose_pass = 0.5
-    cfg.optim.pose_sweeps = (0.5,)
-    cfg.optim.pose_sweep_steps = 3
-    cfg.optim.pose_refits = ()  # the second pass holds the first pass's poses (refits: their own test)
+    cfg.poses.first_pass = 0.5
+    cfg.poses.fits = (0.5,)
+    cfg.poses.fit_steps = 3
+    cfg.poses.held_fits = ()  # the second pass holds the first pass's poses (refits: their own test)
     return cfg
 
 
 def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_path, monkeypatch):
-    """optim.pose_pass 0.5 of 8 iterations: RUN/pose_pass is a refining run of 4; then RUN's avatar
+    """poses.first_pass 0.5 of 8 iterations: RUN/pose_pass is a refining run of 4; then RUN's avatar
     starts from the same initial state as that pass's (not from its trained avatar) and trains 8
     iterations on the first pass's poses, held still (the cached bodies are those poses; the refined
     poses RUN reports are them)."""
@@ -260,18 +285,18 @@ def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_p
 
     def setup(self):
         original(self)
-        started.append((self.run_dir.name, self.avatar.means.detach().clone(), self.vertices.clone(),
-                        None if self.poses is None else self.poses.frozen))
+        started.append((self.run_folder.path.name, self.avatar.means.detach().clone(), self.frames.vertices.clone(),
+                        None if self.poses is None else self.poses.held))
 
     monkeypatch.setattr(Trainer, "setup", setup)
     run = tmp_path / "run"
     done = train(_two_pass_cfg(noisy), run, progress=False)
     assert done.iteration == 8 and [s[0] for s in started] == ["pose_pass", "run"]
     assert [s[3] for s in started] == [False, True]  # the first pass refines, the second holds
-    first, second = read_checkpoint(checkpoint_path(run / "pose_pass")), read_checkpoint(checkpoint_path(run))
-    assert first["iteration"] == 4 and second["iteration"] == 8
+    first, second = _checkpoint(run / "pose_pass"), _checkpoint(run)
+    assert first.iteration == 4 and second.iteration == 8
     assert torch.equal(started[0][1], started[1][1])  # afresh: the same initial Gaussians
-    assert not torch.equal(first["avatar"]["state_dict"]["means"], started[1][1])
+    assert not torch.equal(first.avatar["state_dict"]["means"], started[1][1])
     p1, p2 = np.load(run / "pose_pass" / "poses.npz"), np.load(run / "poses.npz")
     for key in ("global_orient", "body_pose", "transl"):
         np.testing.assert_allclose(p2[key], p1[key], atol=1e-5, err_msg=key)
@@ -293,38 +318,38 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
     run = tmp_path / "run"
     stopped = _train_interrupted(_two_pass_cfg(noisy), run, monkeypatch, 2, where)
     assert stopped.interrupted and stopped.iteration == 2
-    assert checkpoint_path(run).is_file() == (where == "run")
+    assert RunFolder(run).has_checkpoint() == (where == "run")
     from rmavatar.utils import UserError
 
     other = _two_pass_cfg(noisy)
-    other.optim.pose_sweep_steps = 4
+    other.poses.fit_steps = 4
     if where == "pose_pass":  # a fresh start over it with other settings would mix two runs: refused
         with pytest.raises(UserError, match="other settings"):
             train(other, run, progress=False)
         # the refits' settings are the second pass's alone: the first pass is taken over as it is
         second = _two_pass_cfg(noisy)
-        second.optim.pose_refits, second.optim.pose_refit_lr, second.optim.pose_refit_steps = (0.5,), 1e-3, 3
-        assert _first_pass(second, run, True)[1]["iteration"] == 2
-    opened, reads, open_dataset = [], [], trainer_module._open_dataset
+        second.poses.held_fits, second.poses.held_fit_lr_rotation, second.poses.held_fit_steps = (0.5,), 1e-3, 3
+        assert first_pass_config(second, RunFolder(run), True)[1].iteration == 2
+    opened, reads, open_dataset = [], [], pipeline.open_dataset
     with monkeypatch.context() as m:  # both passes share one dataset; each checkpoint is read once
-        m.setattr(trainer_module, "_open_dataset", lambda c: opened.append(c) or open_dataset(c))
-        m.setattr(trainer_module, "read_checkpoint", lambda path: reads.append(str(path)) or read_checkpoint(path))
+        m.setattr(pipeline, "open_dataset", lambda c: opened.append(c) or open_dataset(c))
+        m.setattr(run_module, "read_checkpoint", lambda path: reads.append(str(path)) or read_checkpoint(path))
         train(None, run, resume=True, progress=False)
     assert len(opened) == 1 and len(reads) == 1, reads
     for sub in ("pose_pass", ""):
-        a, b = read_checkpoint(checkpoint_path(whole / sub)), read_checkpoint(checkpoint_path(run / sub))
-        assert a["iteration"] == b["iteration"]
-        for key, value in a["avatar"]["state_dict"].items():
-            assert torch.equal(value, b["avatar"]["state_dict"][key]), (sub, key)
-        assert torch.equal(a["poses"]["delta"], b["poses"]["delta"]), sub
+        a, b = _checkpoint(whole / sub), _checkpoint(run / sub)
+        assert a.iteration == b.iteration
+        for key, value in a.avatar["state_dict"].items():
+            assert torch.equal(value, b.avatar["state_dict"][key]), (sub, key)
+        assert torch.equal(a.poses["delta"], b.poses["delta"]), sub
 
 
 def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_identical(noisy, tmp_path,
                                                                                         monkeypatch):
-    """optim.pose_refits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
+    """poses.held_fits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
     5 is an opacity reset in a run this short, so one earlier) the avatar being trained fits every held
-    pose again, at optim.pose_refit_lr for optim.pose_refit_steps (both fits weigh the mask by
-    optim.pose_fit_mask); the refitted poses render
+    pose again, at poses.held_fit_lr_* for poses.held_fit_steps (both fits weigh the mask by
+    poses.fit_mask); the refitted poses render
     the frames closer to their images, the held bodies and face tables are posed again from them, and
     RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
     bit-identical."""
@@ -332,33 +357,39 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     from rmavatar.body import posed_vertices
 
     cfg = _two_pass_cfg(noisy)
-    cfg.optim.pose_refits = (0.625,)
-    cfg.optim.pose_refit_lr = 4e-3
-    cfg.optim.pose_sweep_steps = 10
-    cfg.optim.pose_refit_steps = 7
-    cfg.optim.pose_fit_mask = 2.0
-    seen, rates = [], []
-    original, original_fit = Trainer.sweep_poses, fit_module.fit_poses
+    cfg.poses.held_fits = (0.625,)
+    cfg.poses.held_fit_lr_rotation, cfg.poses.held_fit_lr_translation = 4e-3, 1e-4
+    cfg.poses.fit_steps = 10
+    cfg.poses.held_fit_steps = 7
+    cfg.poses.fit_mask = 2.0
+    seen, rates, holds = [], [], []
+    original_fit, original_hold = fit_module.fit_poses, FrameCache.hold
 
-    def sweep(self):
-        before = self.poses.poses()
-        original(self)
-        after = self.poses.poses()
-        if self.poses.frozen:
-            betas = self.dataset.params("train")["betas"]
-            torch.testing.assert_close(self.vertices, posed_vertices(self.body, after, betas), atol=0, rtol=0)
+    def record(refinement, iteration, before, after, avatar, body, frames):
+        if refinement.held:
+            betas = refinement.refiner.betas
+            seen.append((iteration, before, after, _image_error(avatar, body, betas, frames, before),
+                         _image_error(avatar, body, betas, frames, after)))
+
+    def hold(self, poses):  # the held bodies and face tables are posed again from the refitted poses
+        original_hold(self, poses)
+        betas = self.dataset.params("train")["betas"]
+        torch.testing.assert_close(self.vertices, posed_vertices(self.body, poses, betas), atol=0, rtol=0)
+        if self.face_tables is not None:
             assert torch.equal(self.face_tables, torch.stack([self.avatar.face_table(v) for v in self.vertices]))
-            seen.append((self.iteration, before, after, _image_error(self, before), _image_error(self, after)))
+        holds.append((poses, self.face_tables is not None))
 
     def fit(*args, **kwargs):
         rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps, args[6].silhouette))
         return original_fit(*args, **kwargs)
 
     monkeypatch.setattr(fit_module, "fit_poses", fit)
-    monkeypatch.setattr(Trainer, "sweep_poses", sweep)
+    monkeypatch.setattr(FrameCache, "hold", hold)
+    _fits_seen(monkeypatch, record)
     whole = tmp_path / "whole"
     train(cfg, whole, progress=False)
     assert [s[0] for s in seen] == [4]
+    assert holds[-1][1] and torch.equal(holds[-1][0].body_pose, seen[0][2].body_pose)  # the refit's poses
     assert rates == [(2e-2, 5e-4, 10, 2.0), (4e-3, 1e-4, 7, 2.0)]  # the first pass's sweep, then the refit
     _, before, after, err_before, err_after = seen[0]
     print("refit: image error", err_before, "->", err_after)
@@ -373,11 +404,11 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     run = tmp_path / "run"
     assert _train_interrupted(cfg, run, monkeypatch, 6, "run").interrupted
     train(None, run, resume=True, progress=False)
-    a, b = read_checkpoint(checkpoint_path(whole)), read_checkpoint(checkpoint_path(run))
-    assert a["iteration"] == b["iteration"] == 8
-    for key, value in a["avatar"]["state_dict"].items():
-        assert torch.equal(value, b["avatar"]["state_dict"][key]), key
-    assert torch.equal(a["poses"]["delta"], b["poses"]["delta"])
+    a, b = _checkpoint(whole), _checkpoint(run)
+    assert a.iteration == b.iteration == 8
+    for key, value in a.avatar["state_dict"].items():
+        assert torch.equal(value, b.avatar["state_dict"][key]), key
+    assert torch.equal(a.poses["delta"], b.poses["delta"])
 
 
 def test_the_poses_file_round_trips_and_refuses_other_frames(tmp_path):

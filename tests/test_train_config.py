@@ -8,18 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.avatar.trained import (
-    MARKER,
-    body_signature,
-    check_body,
-    checkpoint_path,
-    read_checkpoint,
-)
+from rmavatar.avatar.run import MARKER, Checkpoint, RunFolder, body_signature, check_body, read_checkpoint
 from rmavatar.commands.train import add_arguments, config_from_args
 from rmavatar.train import checkpoint as ck
 from rmavatar.train.config import TrainConfig, load_config, save_config
 from rmavatar.train.optim import position_lr
-from rmavatar.train.trainer import FrameSampler, _finite_flag, _NonFiniteGuard, composite_target
+from rmavatar.render import composite
+from rmavatar.train.frames import FrameSampler
+from rmavatar.train.report import NonFiniteGuard, finite_flag
 from rmavatar.utils import UserError
 
 
@@ -104,10 +100,17 @@ def test_target_composite():
     mask[1:3, 2:4] = 1.0
     mask[0, 0] = 0.25
     bg = torch.tensor([1.0, 0.5, 0.0])
-    t = composite_target(img, mask, bg)
+    t = composite(img, mask, bg)
     assert torch.equal(t[1, 2], img[1, 2])
     assert torch.equal(t[3, 4], bg)
     assert torch.allclose(t[0, 0], 0.25 * img[0, 0] + 0.75 * bg)
+
+
+def _checkpoint(**fields) -> Checkpoint:
+    """A checkpoint of placeholder contents with ``fields`` set."""
+    empty = dict(iteration=0, config={}, data_spec="", body={}, betas=None, avatar={}, optimizer={}, density={},
+                 sampler={}, rng={}, poses=None, saved_at=0.0)
+    return Checkpoint(**{**empty, **fields})
 
 
 def test_run_dir_ownership(tmp_path):
@@ -115,26 +118,26 @@ def test_run_dir_ownership(tmp_path):
     foreign.mkdir()
     (foreign / "thesis.tex").write_text("precious")
     with pytest.raises(UserError, match="someone else"):
-        ck.prepare_run_dir(foreign, "/data/a", resume=False)
+        RunFolder(foreign).prepare("/data/a", resume=False)
     assert (foreign / "thesis.tex").read_text() == "precious" and not (foreign / MARKER).exists()
     run = tmp_path / "run"
     with pytest.raises(UserError, match="no run to resume"):
-        ck.prepare_run_dir(run, "/data/a", resume=True)
-    ck.prepare_run_dir(run, "/data/a", resume=False)
+        RunFolder(run).prepare("/data/a", resume=True)
+    RunFolder(run).prepare("/data/a", resume=False)
     assert json.loads((run / MARKER).read_text())["data"] == "/data/a"
-    ck.prepare_run_dir(run, "/data/a", resume=False)  # no checkpoint yet: starting over is fine
-    ck.prepare_run_dir(run, "/data/b", resume=False)  # ... even with other data (a failed start)
+    RunFolder(run).prepare("/data/a", resume=False)  # no checkpoint yet: starting over is fine
+    RunFolder(run).prepare("/data/b", resume=False)  # ... even with other data (a failed start)
     assert json.loads((run / MARKER).read_text())["data"] == "/data/b"
     with pytest.raises(UserError, match="no checkpoint"):
-        ck.prepare_run_dir(run, "/data/b", resume=True)
-    ck.save_checkpoint(checkpoint_path(run), {"iteration": 3})
+        RunFolder(run).prepare("/data/b", resume=True)
+    ck.save_checkpoint(RunFolder(run).checkpoint, _checkpoint(iteration=3))
     with pytest.raises(UserError, match="--resume"):
-        ck.prepare_run_dir(run, "/data/b", resume=False)
+        RunFolder(run).prepare("/data/b", resume=False)
     with pytest.raises(UserError, match="another dataset"):
-        ck.prepare_run_dir(run, "/data/a", resume=False)
+        RunFolder(run).prepare("/data/a", resume=False)
     with pytest.raises(UserError, match="another dataset"):
-        ck.prepare_run_dir(run, "/data/a", resume=True)
-    ck.prepare_run_dir(run, "/data/b", resume=True)
+        RunFolder(run).prepare("/data/a", resume=True)
+    RunFolder(run).prepare("/data/b", resume=True)
 
 
 def test_checkpoint_io_and_rng(tmp_path):
@@ -144,15 +147,15 @@ def test_checkpoint_io_and_rng(tmp_path):
     random.seed(3)
     state = ck.capture_rng(g)
     path = tmp_path / "c" / "last.pt"
-    ck.save_checkpoint(path, {"iteration": 7, "rng": state, "t": torch.arange(3)})
+    ck.save_checkpoint(path, _checkpoint(iteration=7, rng=state, optimizer={"t": torch.arange(3)}))
     expect = (torch.rand(2), np.random.rand(2), random.random(), torch.rand(2, generator=g))
     torch.manual_seed(9)
     np.random.seed(9)
     random.seed(9)
     g.manual_seed(9)
     loaded = read_checkpoint(path)
-    assert loaded["iteration"] == 7 and torch.equal(loaded["t"], torch.arange(3))
-    ck.restore_rng(loaded["rng"], g)
+    assert loaded.iteration == 7 and torch.equal(loaded.optimizer["t"], torch.arange(3))
+    ck.restore_rng(loaded.rng, g)
     got = (torch.rand(2), np.random.rand(2), random.random(), torch.rand(2, generator=g))
     assert torch.equal(got[0], expect[0]) and np.array_equal(got[1], expect[1])
     assert got[2] == expect[2] and torch.equal(got[3], expect[3])
@@ -163,6 +166,11 @@ def test_checkpoint_io_and_rng(tmp_path):
     torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
     with pytest.raises(UserError, match="not an rmavatar checkpoint"):
         read_checkpoint(tmp_path / "other.pt")
+    payload = _checkpoint(iteration=2).to_payload()
+    del payload["sampler"]
+    torch.save(payload, tmp_path / "torn.pt")
+    with pytest.raises(UserError, match="incomplete rmavatar checkpoint"):
+        read_checkpoint(tmp_path / "torn.pt")
 
 
 def test_body_signature_mismatch_is_a_clear_error():
@@ -184,14 +192,14 @@ def test_finite_flag_and_its_float_twin(poison):
         b[1, 2] = poison
     if poison == 3e38:  # finite, but the sum overflows: also skipped
         a[:] = 3e38
-    ok, bad = _finite_flag(a, b, torch.tensor(0.5))
+    ok, bad = finite_flag(a, b, torch.tensor(0.5))
     expect_ok = poison is None
     assert ok.dtype == torch.bool and bool(ok) is expect_ok
     assert bad.dtype == torch.float32 and float(bad) == (0.0 if expect_ok else 1.0)
 
 
 def test_non_finite_guard_counts_skips_and_the_longest_streak():
-    guard = _NonFiniteGuard(torch.device("cpu"), max_bad_steps=10)
+    guard = NonFiniteGuard(torch.device("cpu"), max_bad_steps=10)
     pattern = [1, 1, 0, 1, 1, 1, 0, 0, 1]
     for b in pattern:
         guard.update(torch.tensor(float(b)))

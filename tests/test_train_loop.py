@@ -10,57 +10,51 @@ import time
 import pytest
 import torch
 
-from rmavatar.avatar.trained import checkpoint_path, load_trained, read_checkpoint
+from rmavatar.avatar import load_trained
+from rmavatar.avatar.run import RunFolder, read_checkpoint
 from rmavatar.train.checkpoint import save_checkpoint
-from rmavatar.train.config import TrainConfig
-from rmavatar.train.trainer import Trainer, train
+from rmavatar.train import train
+from rmavatar.train.trainer import Trainer
 from rmavatar.utils import UserError
 
 from devices import DEVICES
+from helpers import tiny_train_config
 
 SIZE = 64
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    from rmavatar.data.synth import SynthConfig, synthesize
-
+def data(tmp_path_factory, make_synth_subject):
     out = tmp_path_factory.mktemp("synth") / "subject"
-    synthesize(out, SynthConfig(size=SIZE, seed=0, train=12, test=1, novel_pose=1, ss=2), progress=False)
-    return str(out)
+    return str(make_synth_subject(out, size=SIZE, seed=0, train=12, test=1, novel_pose=1, ss=2))
 
 
 def _cfg(data, iters, **log):
-    cfg = TrainConfig()
-    cfg.data.path = data
-    cfg.data.size = SIZE
-    cfg.optim.iters = iters
-    cfg.threads = 1  # robust on a shared 2-core machine (spinning OpenMP threads in this process)
-    cfg.log.tensorboard = False
-    cfg.log.preview_every = 10**6
+    """The full model's defaults (density control on, the default device), one thread: robust on a shared
+    2-core machine (spinning OpenMP threads in this process)."""
+    cfg = tiny_train_config(data, iters, size=SIZE, density=None, device=None, threads=1, preview_every=10**6)
     for k, v in log.items():
         setattr(cfg.log, k, v)
     return cfg
 
 
 def _params(run_dir):
-    return read_checkpoint(checkpoint_path(run_dir))["avatar"]["state_dict"]
+    return RunFolder(run_dir).read_checkpoint().avatar["state_dict"]
 
 
 def _mean_train_psnr(avatar, trainer) -> float:
     """Mean PSNR over all training frames (white background, full image), rendered deterministically."""
-    from rmavatar.render import rasterize
+    from rmavatar.avatar import render_frame
 
     bg = torch.ones(3)
     values = []
     avatar.eval()
+    frames = trainer.frames
     with torch.no_grad():
-        for i in range(trainer.vertices.shape[0]):
-            gs = avatar(trainer.vertices[i], trainer.body_pose[i])
-            view = trainer.viewmats[i]
-            image, _, _ = rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view,
-                                    trainer.Ks[i], trainer.width, trainer.height, background=bg)
-            target = trainer.target(i, bg)
+        for i in range(len(frames)):
+            vertices, body_pose, _ = frames.held(i)
+            image = render_frame(avatar, vertices, body_pose, frames.cameras[i], bg).image
+            target = frames.target(i, bg)
             values.append(10 * torch.log10(1 / ((image.clamp(0, 1) - target) ** 2).mean()).item())
     return sum(values) / len(values)
 
@@ -113,7 +107,7 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
         _interrupt_at(m, k)
         first = train(_cfg(data, n), tmp_path / "split", progress=False)
     assert first.interrupted and first.iteration == k
-    assert read_checkpoint(checkpoint_path(tmp_path / "split"))["iteration"] == k
+    assert RunFolder(tmp_path / "split").read_checkpoint().iteration == k
     second = train(None, tmp_path / "split", resume=True, progress=False)
     assert second.iteration == n and not second.interrupted
     a, b = _params(tmp_path / "straight"), _params(tmp_path / "split")
@@ -123,8 +117,8 @@ def test_ctrl_c_saves_and_resume_is_exact(data, tmp_path, monkeypatch):
     # One thread: every kernel is deterministic, so the two runs agree bit for bit.
     for key in a:
         assert torch.equal(a[key], b[key]), key
-    oa = read_checkpoint(checkpoint_path(tmp_path / "straight"))["optimizer"]["state"]
-    ob = read_checkpoint(checkpoint_path(tmp_path / "split"))["optimizer"]["state"]
+    oa = RunFolder(tmp_path / "straight").read_checkpoint().optimizer["state"]
+    ob = RunFolder(tmp_path / "split").read_checkpoint().optimizer["state"]
     assert oa.keys() == ob.keys()
     for idx in oa:
         for key in ("step", "exp_avg", "exp_avg_sq"):
@@ -135,7 +129,7 @@ def test_sigterm_also_saves_and_stops(data, tmp_path, monkeypatch):
     _interrupt_at(monkeypatch, 2, signal.SIGTERM)
     result = train(_cfg(data, 6), tmp_path / "run", progress=False)
     assert result.interrupted and result.iteration == 2
-    assert read_checkpoint(checkpoint_path(tmp_path / "run"))["iteration"] == 2
+    assert RunFolder(tmp_path / "run").read_checkpoint().iteration == 2
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers restored
 
 
@@ -144,11 +138,11 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
     cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", "400",
            "--size", str(SIZE), "--checkpoint-every", "3", "--threads", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    path = checkpoint_path(run)
+    path = RunFolder(run).checkpoint
     deadline = time.time() + 120
     try:
         while time.time() < deadline:
-            if path.is_file() and read_checkpoint(path)["iteration"] >= 6:
+            if path.is_file() and read_checkpoint(path).iteration >= 6:
                 break
             assert proc.poll() is None, "training ended early"
             time.sleep(0.05)
@@ -158,10 +152,10 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
     finally:
         proc.kill()
         proc.wait()
-    saved = read_checkpoint(path)["iteration"]
+    saved = read_checkpoint(path).iteration
     assert saved >= 6 and saved % 3 == 0
     # Resume (in-process, shorter run via --iters) starts exactly at the checkpoint.
-    cfg_iters = [(saved + 2, "optim", "iters")]
+    cfg_iters = {"optim.iters": saved + 2}
     result = train(None, run, resume=True, data=data, overrides=cfg_iters, progress=False)
     assert result.iteration == saved + 2
     assert not list(path.parent.glob(".last.*"))
@@ -173,9 +167,9 @@ def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
     original = trainer.total_loss
     calls = {"n": 0}
 
-    def poisoned(render, target, gaussians, weights=None, **kw):
+    def poisoned(render, target, extras, weights=None, **kw):
         calls["n"] += 1
-        loss, parts = original(render, target, gaussians, weights, **kw)
+        loss, parts = original(render, target, extras, weights, **kw)
         if calls["n"] == 2:
             return loss * float("nan"), parts
         if calls["n"] == 3:  # finite loss, NaN gradients
@@ -187,7 +181,7 @@ def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
     assert result.iteration == 5
     state = _params(tmp_path / "run")
     assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
-    opt = read_checkpoint(checkpoint_path(tmp_path / "run"))["optimizer"]["state"]
+    opt = RunFolder(tmp_path / "run").read_checkpoint().optimizer["state"]
     assert int(opt[0]["step"]) == 3  # 5 iterations, 2 skipped
 
 
@@ -205,11 +199,11 @@ def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_p
     cfg = _cfg(data, 50, max_bad_steps=3, progress_every=4)
     with pytest.raises(UserError, match="iteration 4: 4 consecutive steps .*max_bad_steps is 3"):
         train(cfg, tmp_path / "run", progress=False)
-    saved = read_checkpoint(checkpoint_path(tmp_path / "run"))
+    saved = RunFolder(tmp_path / "run").read_checkpoint()
     fresh = Trainer(_cfg(data, 50), tmp_path / "probe", progress=False)
     fresh.setup()
     for key, value in [*fresh.avatar.named_parameters(), ("face_ids", fresh.avatar.face_ids)]:
-        assert torch.equal(saved["avatar"]["state_dict"][key], value), key
+        assert torch.equal(saved.avatar["state_dict"][key], value), key
 
 
 def test_refuses_foreign_and_mismatched_runs(data, tmp_path):
@@ -225,15 +219,13 @@ def test_refuses_foreign_and_mismatched_runs(data, tmp_path):
     with pytest.raises(UserError, match="not of"):
         train(None, run, resume=True, data=str(tmp_path), progress=False)
     with pytest.raises(UserError, match="cannot change"):
-        train(None, run, resume=True, overrides=[(False, "model", "rectifier")], progress=False)
+        train(None, run, resume=True, overrides={"model.rectifier": False}, progress=False)
     # A checkpoint whose body topology differs from the body model it names.
-    path = checkpoint_path(run)
-    payload = read_checkpoint(path)
-    payload["body"]["num_faces"] += 1
-    payload["body"]["faces_sha1"] = "0" * 40
-    for key in ("format", "version"):
-        payload.pop(key)
-    save_checkpoint(path, payload)
+    path = RunFolder(run).checkpoint
+    ckpt = read_checkpoint(path)
+    ckpt.body["num_faces"] += 1
+    ckpt.body["faces_sha1"] = "0" * 40
+    save_checkpoint(path, ckpt)
     with pytest.raises(UserError, match="incompatible"):
         load_trained(run)
     with pytest.raises(UserError, match="incompatible"):
@@ -249,7 +241,7 @@ def test_ablations_and_backgrounds_run(data, tmp_path):
     assert result.iteration == 3
     loaded = load_trained(tmp_path / "norect")
     assert loaded.avatar.rectifier is None and not loaded.config["model"]["rectifier"]
-    groups = [g["name"] for g in read_checkpoint(checkpoint_path(tmp_path / "norect"))["optimizer"]["param_groups"]]
+    groups = [g["name"] for g in RunFolder(tmp_path / "norect").read_checkpoint().optimizer["param_groups"]]
     assert groups == ["position", "rotation", "scaling", "opacity", "sh_dc", "sh_rest"]
     cfg = _cfg(data, 2)
     cfg.background = "black"
@@ -293,13 +285,13 @@ def test_frame_caches_change_nothing_but_the_work(data, tmp_path, monkeypatch, b
     import rmavatar.train.trainer as trainer_module
 
     def run(budget, name, lpips_units=True):
-        monkeypatch.setattr(trainer_module, "FRAME_CACHE_BYTES", budget)
+        monkeypatch.setattr(trainer_module, "FRAME_CACHE_BYTES", budget)  # the trainer's name for it
         cfg = _cfg(data, 20)
         cfg.background = background
         t = Trainer(cfg, tmp_path / name, progress=False)
         t.setup()
         if not lpips_units:
-            t.target_units = None
+            t.frames.target_units = None
         losses = []
         for _ in range(6):
             losses.append(float(t.step()["loss"]))
@@ -310,12 +302,13 @@ def test_frame_caches_change_nothing_but_the_work(data, tmp_path, monkeypatch, b
     cached, loss_cached = run(budget, "cached")
     tables, loss_tables = run(budget, "tables", lpips_units=False)
     plain, loss_plain = run(0, "plain")
-    assert plain.face_tables is None and plain.targets is None and plain.target_units is None
-    assert cached.face_tables is not None and cached.face_tables.shape[0] == cached.vertices.shape[0]
+    uncached, kept = plain.frames, cached.frames
+    assert uncached.face_tables is None and uncached.targets is None and uncached.target_units is None
+    assert kept.face_tables is not None and kept.face_tables.shape[0] == kept.vertices.shape[0]
     if background == "white":
-        assert cached.targets is not None and len(cached.target_units) == cached.vertices.shape[0]
+        assert kept.targets is not None and len(kept.target_units) == kept.vertices.shape[0]
     else:
-        assert cached.targets is None and cached.target_units is None
+        assert kept.targets is None and kept.target_units is None
     assert loss_tables == loss_plain
     for (name, a), b in zip(tables.avatar.state_dict().items(), plain.avatar.state_dict().values()):
         assert torch.equal(a, b), name

@@ -12,8 +12,10 @@ from rmavatar.avatar.model import (
     SH_C0,
     Avatar,
     AvatarConfig,
+    AvatarExtras,
     area_counts,
 )
+from rmavatar.avatar.frame import RenderedFrame, render_frame
 from rmavatar.avatar.rectifier import Rectifier, positional_encoding, window_alpha
 from rmavatar.avatar.trained import TrainedAvatar, load_trained
 
@@ -22,12 +24,15 @@ __all__ = [
     "SH_C0",
     "Avatar",
     "AvatarConfig",
+    "AvatarExtras",
     "Rectifier",
+    "RenderedFrame",
     "TrainedAvatar",
     "area_counts",
     "load_trained",
     "positional_encoding",
     "quat_multiply",
+    "render_frame",
     "quat_to_rotmat",
     "rotmat_to_quat",
     "triangle_frames",

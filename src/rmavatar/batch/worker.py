@@ -137,10 +137,11 @@ class _JobRun:
 
     # --- the job ----------------------------------------------------------------------------------
     def run(self) -> dict:
-        from rmavatar.avatar.trained import checkpoint_path, read_checkpoint
+        from rmavatar.avatar.run import RunFolder
         from rmavatar.data import load_dataset
+        from rmavatar.train import train
         from rmavatar.train.config import TrainConfig, from_dict
-        from rmavatar.train.trainer import set_threads, train
+        from rmavatar.utils.device import set_threads
 
         set_threads(self.threads)
         cfg = from_dict(TrainConfig, self.job["config"], where=f"job {self.job['name']}")
@@ -152,12 +153,12 @@ class _JobRun:
                 raise UserError(f"split '{split}' of {cfg.data.path} has no frames")
         del dataset
 
-        ckpt_file = checkpoint_path(self.run_dir)
-        ckpt = read_checkpoint(ckpt_file) if ckpt_file.is_file() else None
+        run = RunFolder(self.run_dir)
+        ckpt = run.read_checkpoint() if run.has_checkpoint() else None
         resumed_from = None
         if ckpt is not None:
-            self._check_same_run(ckpt["config"], cfg)
-            resumed_from = int(ckpt["iteration"])
+            self._check_same_run(ckpt.config, cfg)
+            resumed_from = int(ckpt.iteration)
             self.iteration = resumed_from
             previous = read_json(self.job_dir / "progress.json")
             if previous and previous.get("train_seconds") is not None:
@@ -187,8 +188,8 @@ class _JobRun:
         else:
             print(f"already trained: checkpoint at iteration {resumed_from} of {self.total}", flush=True)
 
-        final = read_checkpoint(ckpt_file)
-        iteration, gaussians = int(final["iteration"]), int(final["avatar"]["state_dict"]["means"].shape[0])
+        final = run.read_checkpoint()
+        iteration, gaussians = int(final.iteration), final.num_gaussians
         del final
         self.write_progress("evaluating", force=True)
         eval_started = time.perf_counter()

@@ -132,7 +132,7 @@ def bench_training_step(data: str, size: int, steps: int, warmup: int, threads: 
 def _trained(data: str, run: str | None, gaussians: int | None):
     """The avatar to render: a trained run's, or a freshly initialised one on the dataset's body."""
     from rmavatar.avatar import TrainedAvatar, load_trained
-    from rmavatar.avatar.trained import training_betas
+    from rmavatar.avatar.run import training_betas
 
     if run is not None:
         return load_trained(run), "trained run " + str(run)
@@ -278,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rmavatar.bench.step import synthetic_subject
     from rmavatar.bench.timing import machine_info
-    from rmavatar.train.trainer import set_threads
+    from rmavatar.utils.device import set_threads
     from rmavatar.utils.outputs import output_file
 
     t_start = time.perf_counter()

@@ -41,7 +41,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
     from rmavatar.render import rasterize
     from rmavatar.train.losses import total_loss
-    from rmavatar.train.trainer import background_color
+    from rmavatar.train.frames import background_color
 
     av, cfg, dev = trainer.avatar, trainer.cfg, trainer.device
     i = 0
@@ -51,8 +51,8 @@ def _stages(trainer, repeats: int, sync) -> dict:
     verts, pose, table = trainer.frame_body(i, trainer.iteration)
     verts = verts.detach()  # the stages are timed again and again: not through a refined pose's graph
     bg = background_color(cfg.background, trainer.bg_generator, dev)
-    target = trainer.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
-    units = trainer.target_lpips_units(i, bg)
+    target = trainer.frames.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
+    units = trainer.frames.lpips_units(i, bg)
     out = {}
 
     with torch.no_grad():
@@ -73,33 +73,29 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
         out["rectifier"] = median_time(rect, repeats, sync)
     with torch.no_grad():
-        gs = av(verts, pose, table=table)
-    colors = gs.colors(trainer.viewmats[i])
+        gs, extras = av.forward_with_extras(verts, pose, table=table)
+    cam = trainer.frames.cameras[i]
+    colors = gs.colors(cam.viewmat)
     leaves = [t.detach().clone().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors)]
 
     def raster_fwd():
         with torch.no_grad():
-            rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
-                      background=bg)
+            rasterize(*leaves, cam.viewmat, cam.K, cam.width, cam.height, background=bg)
 
     out["rasterizer_forward"] = median_time(raster_fwd, repeats, sync)
-    grad_img = torch.rand(trainer.height, trainer.width, 3, generator=torch.Generator().manual_seed(0)).to(dev)
+    grad_img = torch.rand(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(0)).to(dev)
     clock = Clock(sync)
     for _ in range(repeats):
-        image, alpha, _ = rasterize(*leaves, trainer.viewmats[i], trainer.Ks[i], trainer.width, trainer.height,
-                                    background=bg)
+        image, alpha, _ = rasterize(*leaves, cam.viewmat, cam.K, cam.width, cam.height, background=bg)
         with clock:
             image.backward(grad_img)
     out["rasterizer_backward"] = clock.result()
     img_leaf = image.detach().clone().requires_grad_(True)
-    gs_leaf = type(gs)(**{**gs.__dict__})
-    gs_leaf.local_means = av.means
-    gs_leaf.local_log_scales = av.log_scales
-    if gs.offsets is not None:
-        gs_leaf.offsets = tuple(o.detach().clone().requires_grad_(True) for o in gs.offsets)
+    offsets = None if extras.offsets is None else tuple(o.detach().clone().requires_grad_(True) for o in extras.offsets)
+    extras_leaf = type(extras)(local_means=av.means, local_log_scales=av.log_scales, offsets=offsets)
 
     def losses():
-        loss, _ = total_loss(img_leaf, target, gs_leaf, cfg.loss, lpips_units=units)
+        loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units)
         loss.backward()
 
     out["losses"] = median_time(losses, repeats, sync)
@@ -114,6 +110,25 @@ def _stages(trainer, repeats: int, sync) -> dict:
     out["optimizer"] = median_time(optim, repeats, sync)
     av.zero_grad(set_to_none=True)
     return out
+
+
+def _config(data: str, size: int, device: str, threads: int, rectifier, gaussians: int, refine_poses: bool):
+    """The TrainConfig the benchmark's steps run with."""
+    from rmavatar.train.config import TrainConfig
+    from rmavatar.train.pipeline import normalize_data_spec
+
+    cfg = TrainConfig()
+    cfg.threads = threads
+    cfg.data.path = normalize_data_spec(data)
+    cfg.data.size = size
+    cfg.device = device
+    cfg.model.rectifier = "paper" if rectifier else False  # the design every measurement here was taken with
+    if refine_poses:  # every timed step past the warm-up: the body posed with gradients (a first pass's)
+        cfg.poses.refine, cfg.poses.warmup, cfg.poses.first_pass = True, 0.0, 0.0
+    if gaussians:
+        cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
+    cfg.log.tensorboard = False
+    return cfg
 
 
 def count_step_ops(one_step, steps: int) -> dict:
@@ -149,20 +164,9 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
     """
     import torch
 
-    from rmavatar.train.config import TrainConfig
-    from rmavatar.train.trainer import Trainer, normalize_data_spec
+    from rmavatar.train.trainer import Trainer
 
-    cfg = TrainConfig()
-    cfg.threads = threads
-    cfg.data.path = normalize_data_spec(data)
-    cfg.data.size = size
-    cfg.device = device
-    cfg.model.rectifier = rectifier
-    if refine_poses:  # every timed step past the warm-up: the body posed with gradients (a first pass's)
-        cfg.optim.refine_poses, cfg.optim.pose_warmup, cfg.optim.pose_pass = True, 0.0, 0.0
-    if gaussians:
-        cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
-    cfg.log.tensorboard = False
+    cfg = _config(data, size, device, threads, rectifier, gaussians, refine_poses)
     with tempfile.TemporaryDirectory() as run:
         trainer = Trainer(cfg, Path(run), progress=False)
         t0 = time.perf_counter()

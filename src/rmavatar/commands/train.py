@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "then refined by a first pass of half the iterations (RUN/pose_pass) that fits "
                              "them to every training image at 20%% and 45%% of it, then the avatar is trained "
                              "afresh on them for the full iterations and fits them again at 40%% and 70%% of it "
-                             "(optim.smooth_poses, optim.pose_sweeps, optim.pose_pass, optim.pose_refits; "
+                             "(poses.smooth, poses.fits, poses.first_pass, poses.held_fits; "
                              "docs/train.md). "
                              "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
@@ -59,29 +59,31 @@ def config_from_args(args: argparse.Namespace):
 
     cfg = load_config(args.config) if args.config else TrainConfig()
     cfg.data.path = args.data
-    for value, section, key in _overrides(args):
-        setattr(getattr(cfg, section) if section else cfg, key, value)
+    for key, value in _overrides(args).items():
+        *sections, leaf = key.split(".")
+        node = cfg
+        for section in sections:
+            node = getattr(node, section)
+        setattr(node, leaf, value)
     return cfg.validate()
 
 
-def _overrides(args: argparse.Namespace) -> list[tuple[object, str | None, str]]:
-    """(value, section, key) for every option the user actually gave."""
-    out = []
-    plain = [("body", "model", "body"), ("iters", "optim", "iters"), ("size", "data", "size"),
-             ("bg", None, "background"), ("seed", None, "seed"),
-             ("checkpoint_every", "log", "checkpoint_every"), ("threads", None, "threads")]
-    for attr, section, key in plain:
+def _overrides(args: argparse.Namespace) -> dict[str, object]:
+    """The config settings (dotted keys) of every option the user actually gave."""
+    out = {}
+    plain = [("body", "model.body"), ("iters", "optim.iters"), ("size", "data.size"), ("bg", "background"),
+             ("seed", "seed"), ("checkpoint_every", "log.checkpoint_every"), ("threads", "threads"),
+             ("refine_poses", "poses.refine")]
+    for attr, key in plain:
         value = getattr(args, attr, None)
         if value is not None:
-            out.append((value, section, key))
-    if getattr(args, "refine_poses", None) is not None:
-        out.append((args.refine_poses, "optim", "refine_poses"))
+            out[key] = value
     if getattr(args, "no_rectifier", False):
-        out.append((False, "model", "rectifier"))
+        out["model.rectifier"] = False
     if getattr(args, "no_offset_loss", False):
-        out.append((0.0, "loss", "offset"))
+        out["loss.offset"] = 0.0
     if getattr(args, "no_scaling_loss", False):
-        out.append((0.0, "loss", "scaling"))
+        out["loss.scaling"] = 0.0
     return out
 
 

@@ -1,4 +1,5 @@
-"""Training: the run's config, the loop (``train`` / ``Trainer``), density control, losses, checkpoints.
+"""Training: the run's config, ``train`` (the pipeline of one or two passes), the loop (``Trainer``) and its
+parts (frames, density control, pose refinement, losses, the reporter), writing checkpoints.
 
 Names are imported lazily, so ``rmavatar train`` can configure threading before torch loads.
 """
@@ -11,7 +12,7 @@ _EXPORTS = {
     "TrainConfig": "rmavatar.train.config",
     "load_config": "rmavatar.train.config",
     "save_config": "rmavatar.train.config",
-    "train": "rmavatar.train.trainer",
+    "train": "rmavatar.train.pipeline",
     "Trainer": "rmavatar.train.trainer",
     "TrainResult": "rmavatar.train.trainer",
 }

@@ -3,7 +3,9 @@ paper's defaults, read from and written to YAML (``RUN/config.yaml``).
 
 Each section is the config of the component it builds: ``model`` (:class:`rmavatar.avatar.AvatarConfig`)
 builds the avatar, ``optim`` the optimiser, ``density`` the density controller (which scales the paper's
-50,000-iteration schedule to the run's length), ``loss`` weighs the loss terms.
+50,000-iteration schedule to the run's length), ``poses`` the pose refinement strategy, ``loss`` weighs the
+loss terms. The settings people tune come first in each section; those below its ``--- advanced ---``
+line are for experiments (docs/train.md lists them all, with the measurements behind the defaults).
 """
 
 from __future__ import annotations
@@ -13,9 +15,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rmavatar.avatar.model import AvatarConfig
+from rmavatar.avatar.run import CHECKPOINT_VERSION, migrate_config
 from rmavatar.train.density import DensityConfig
 from rmavatar.train.losses import LossConfig
 from rmavatar.train.optim import OptimConfig
+from rmavatar.train.pose_refine import PoseConfig
 from rmavatar.utils import UserError
 from rmavatar.utils.config import (
     apply_overrides,
@@ -30,7 +34,8 @@ from rmavatar.utils.config import (
 BACKGROUNDS = ("white", "black", "random")
 
 __all__ = ["ABLATIONS", "AvatarConfig", "DataConfig", "DensityConfig", "LogConfig", "LossConfig", "OptimConfig",
-           "TrainConfig", "apply_overrides", "flatten", "from_dict", "load_config", "save_config", "to_dict"]
+           "PoseConfig", "TrainConfig", "apply_overrides", "config_from_dict", "flatten", "from_dict", "load_config",
+           "save_config", "to_dict"]
 
 
 @dataclass
@@ -39,7 +44,7 @@ class DataConfig:
 
     path: str = ""  # dataset spec as given to rmavatar.data.load_dataset (stored absolute)
     size: int | None = None  # square image size the frames are resampled to; None = native
-    split: str = "train"
+    split: str = "train"  # the dataset split to train on
 
     def validate(self) -> "DataConfig":
         check_fields(self, "data")
@@ -52,12 +57,13 @@ class DataConfig:
 class LogConfig:
     """How often to report, preview and checkpoint (iterations)."""
 
-    progress_every: int = 10
-    tensorboard_every: int = 10
-    preview_every: int = 500
-    checkpoint_every: int = 1000
+    checkpoint_every: int = 1000  # write checkpoints/last.pt every this many iterations (and at the end)
+    tensorboard: bool = True  # write TensorBoard event files to RUN/tb
+    # --- advanced ---
+    progress_every: int = 10  # update the progress bar's loss / PSNR every this many iterations
+    tensorboard_every: int = 10  # TensorBoard scalars every this many iterations
+    preview_every: int = 500  # a render | target preview PNG every this many iterations
     max_bad_steps: int = 20  # stop after this many consecutive non-finite losses/gradients
-    tensorboard: bool = True
 
     def validate(self) -> "LogConfig":
         check_fields(self, "log")
@@ -71,14 +77,15 @@ class LogConfig:
 class TrainConfig:
     """Everything a run needs; written to RUN/config.yaml and stored in every checkpoint."""
 
-    data: DataConfig = field(default_factory=DataConfig)
-    model: AvatarConfig = field(default_factory=AvatarConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    density: DensityConfig = field(default_factory=DensityConfig)
-    log: LogConfig = field(default_factory=LogConfig)
-    seed: int = 0
-    background: str = "white"
+    data: DataConfig = field(default_factory=DataConfig)  # which frames, at which size
+    model: AvatarConfig = field(default_factory=AvatarConfig)  # the avatar: body model, rectifier, SH degree
+    optim: OptimConfig = field(default_factory=OptimConfig)  # iterations and learning rates
+    poses: PoseConfig = field(default_factory=PoseConfig)  # pose refinement (estimated poses)
+    density: DensityConfig = field(default_factory=DensityConfig)  # densify / prune; the Gaussian cap
+    loss: LossConfig = field(default_factory=LossConfig)  # the loss terms' weights
+    log: LogConfig = field(default_factory=LogConfig)  # progress, previews, checkpoints
+    background: str = "white"  # the background renders and targets are composited over: white, black, random
+    seed: int = 0  # seeds every random choice of the run (frame order, initialisation, random backgrounds)
     threads: int = 0  # torch CPU threads; 0 = leave torch's default
     device: str = "auto"  # "auto" (CUDA when available), "cpu", "cuda", "cuda:N"
 
@@ -86,20 +93,29 @@ class TrainConfig:
         """Raise UserError for values no run can use; returns self."""
         if self.background not in BACKGROUNDS:
             raise UserError(f"background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
-        for section in (self.data, self.model, self.loss, self.optim, self.density, self.log):
+        for section in (self.data, self.model, self.loss, self.optim, self.poses, self.density, self.log):
             section.validate()
         check_fields(self, "", nonnegative=("seed", "threads"))
         return self
 
 
-def load_config(path: str | os.PathLike) -> TrainConfig:
-    """Read a YAML config (a full or partial TrainConfig); unknown keys and bad types raise UserError."""
-    return from_dict(TrainConfig, read_yaml(path), where=str(path)).validate()
+def load_config(path: str | os.PathLike, as_trained: bool = False) -> TrainConfig:
+    """Read a YAML config (a full or partial TrainConfig, of this or an older layout: migrated); unknown
+    keys and bad types raise UserError. ``as_trained``: a run's own RUN/config.yaml, whose missing settings
+    are those added after it was written (:func:`rmavatar.avatar.run.migrate_config`)."""
+    data = read_yaml(path)
+    version = data.pop("version", None) if isinstance(data, dict) else None
+    return config_from_dict(migrate_config(data, version, as_trained), where=str(path))
+
+
+def config_from_dict(data: dict, where: str = "config") -> TrainConfig:
+    """A validated TrainConfig from plain containers in today's layout (a checkpoint's ``config``)."""
+    return from_dict(TrainConfig, data, where=where).validate()
 
 
 def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
-    """Write ``cfg`` as YAML atomically."""
-    write_yaml(cfg, path)
+    """Write ``cfg`` as YAML atomically, stamped with its layout version (``version:``, first)."""
+    write_yaml(cfg, path, header={"version": CHECKPOINT_VERSION})
 
 
 def config_differences(saved: dict, cfg: TrainConfig, ignore: tuple[str, ...] = ()) -> list[str]:

@@ -61,18 +61,19 @@ class DensityConfig:
     stretched to the run's length (:meth:`schedule`), and the 3DGS thresholds. ``build`` makes the
     controller."""
 
-    enabled: bool = True
+    max_gaussians: int = 0  # the Gaussian cap: densification stops adding past it; 0 = unlimited
+    enabled: bool = True  # densify, prune and reset opacities at all
+    # --- advanced ---
     reference_iters: int = 50_000  # the schedule below is scaled by iters / reference_iters
-    start: int = 10_000
-    every: int = 500
-    stop: int = 35_000
-    reset_every: int = 5_000
-    reset_start: int = 10_000
+    start: int = 10_000  # first densification (at reference_iters)
+    every: int = 500  # densify every this many iterations
+    stop: int = 35_000  # no densification, pruning or opacity reset from here on
+    reset_every: int = 5_000  # reset opacities every this many iterations
+    reset_start: int = 10_000  # the first opacity reset
     grad_threshold: float = 2e-4  # view-space position-gradient norm (3DGS rule)
-    prune_opacity: float = 0.005
+    prune_opacity: float = 0.005  # prune Gaussians less opaque than this (never a face's last)
     percent_dense: float = 0.01  # clone if largest rest-pose scale <= this x the body's extent, else split
     reset_opacity_to: float = 0.01  # opacity resets cap every opacity at this (3DGS)
-    max_gaussians: int = 0  # 0 = unlimited
 
     def validate(self) -> "DensityConfig":
         """Raise UserError for values no schedule can use (names are the config.yaml keys); returns self."""

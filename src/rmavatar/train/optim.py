@@ -19,133 +19,28 @@ def position_lr(iteration: int, total: int, lr_start: float, lr_end: float) -> f
 
 @dataclass
 class OptimConfig:
-    """Adam learning rates (positions in triangle-local units) and the run length."""
+    """Adam with the paper's learning rates (positions in triangle-local units) and the run length."""
 
-    iters: int = 50_000
-    lr_position: float = 0.008
+    iters: int = 50_000  # training iterations (the paper's 50,000)
+    # --- advanced ---
+    lr_position: float = 0.008  # Gaussian positions, at the first iteration
     lr_position_final: float = 1e-5  # reached log-linearly at the last iteration
-    lr_scaling: float = 0.017
-    lr_rotation: float = 0.001
-    lr_opacity: float = 0.05
+    lr_scaling: float = 0.017  # log-scales
+    lr_rotation: float = 0.001  # quaternions
+    lr_opacity: float = 0.05  # opacity logits
     lr_color: float = 0.0025  # SH band 0; higher bands use lr_color / sh_rest_divisor
-    sh_rest_divisor: float = 20.0
-    lr_rectifier: float = 1e-4
-    adam_eps: float = 1e-15
-    # Pose refinement (docs/train.md): per-frame corrections of the training poses. None = auto: on when
-    # the dataset says its poses are estimated (rmavatar capture), off otherwise (the paper's protocol).
-    refine_poses: bool | None = None
-    lr_pose: float = 2e-2  # a frame's rotation corrections move at most this far (radians) per step
-    lr_pose_transl: float = 5e-4  # translation corrections, metres per Adam step
-    lr_pose_final_scale: float = 0.1  # both decay log-linearly to this fraction at the last iteration
-    pose_warmup: float = 0.1  # fraction of the run with frozen corrections (the avatar takes shape first)
-    # With refinement, the estimated poses are first averaged over +-this many frames of their video
-    # (body.smooth_poses: tracker jitter is frame-to-frame); 0 = off.
-    smooth_poses: int = 2
-    # Pose sweeps: at these fractions of the run every training frame's pose is fitted to its image with
-    # the avatar held still (the evaluation's fitting, pose_sweep_steps Adam steps per frame), then
-    # training goes on from the fitted poses. Why: a frame's correction otherwise moves only on the ~1 in
-    # n steps that sample it; 1,000 steps over 100 frames left the corrections nearly where the
-    # smoothing put them. Two early sweeps beat one late one (128 px proxy, fitted test frames: [0.75]
-    # 27.50 dB, [0.45, 0.75] 28.22, [0.2, 0.45] 28.39, true poses 28.94; docs/train.md), plausibly
-    # because the avatar then has most of the run, at a position lr not yet decayed, to sharpen on the
-    # fitted poses. A sweep on an opacity reset runs one step earlier (pose_sweep_iterations). Each
-    # sweep is a fixed cost (every training frame x pose_sweep_steps): large against the demo's 1,000
-    # steps, small against the paper's 50,000. Empty = no sweeps.
-    pose_sweeps: tuple[float, ...] = (0.2, 0.45)
-    pose_sweep_steps: int = 30
-    # Two passes: with refinement, a first run of this fraction of iters (with the sweeps above) refines
-    # the poses into RUN/pose_pass, then the avatar is trained afresh on those poses, held, for iters.
-    # Why: an avatar that trained on poses still wrong for part of its run stays blurred after they are
-    # fixed; one trained from the start on the refined poses is sharper (D = 3 at the demo's size, fitted
-    # test / novel_pose: 33.24 / 30.98 dB against 33.06 / 30.65 in one pass; true poses 34.33 / 31.73;
-    # +29% training time; docs/train.md). 0 = one pass: the avatar that refined the poses is the result.
-    pose_pass: float = 0.5
-    # Refits in the second pass: at these fractions of it the avatar being trained fits every held
-    # training pose again (pose_refit_steps steps, rotations at pose_refit_lr, translations at 1/40 of
-    # it), then trains on from them. Why: the first pass's poses are only as exact as its avatar, which
-    # trained on poses that were moving; the second pass's avatar is sharper and aligns them better (D = 3
-    # at the demo's size, fitted test: none 33.24 dB, [0.5] 33.46, [0.4, 0.7] 33.56; true poses 34.33;
-    # the captured turn of docs/capture.md, with pose_fit_mask 0: 32.82 -> 32.98 dB fitted from its
-    # captured test poses; docs/train.md). A lower lr than the first pass's sweeps: from poses already
-    # nearly right, 30 steps at 2e-2 overshoot (16 frames 0.56 px off in the image: 0.61 px after, 0.49 at
-    # 5e-3). Each refit costs as much as a sweep: a few percent of a run at the default iters, 27-81% more
-    # training at the demo's 1,000. Empty = none (the second pass trains on the first pass's poses, held).
-    pose_refits: tuple[float, ...] = (0.4, 0.7)
-    pose_refit_lr: float = 5e-3
-    # Fitting steps per frame in a refit. 100 fit closer than 30 (D = 3, three refits, test fitted for
-    # 300 steps: 33.87 dB against 33.72; true poses 34.33), the second pass taking 2.6x as long at 1,000
-    # iterations (docs/evaluate.md).
-    pose_refit_steps: int = 30
-    # Weight of the alpha-vs-mask term in the sweeps' and refits' fitting (rmavatar.evaluate.fit's
-    # FitConfig.silhouette); 0 = the images only. Why 0: estimated masks mislead the fit (the synthetic
-    # turn captured by rmavatar capture, MediaPipe's masks: the first pass's avatar fits 16 training
-    # frames to 0.62 px without the term, 0.69 at 1, 0.79 at 3; fitted from the captured test poses:
-    # 32.63 dB at 1, 32.82 at 0, 32.98 at 0 with refits on training seed 0, 32.99 on seed 1; the
-    # true-pose avatars 33.47 and 33.42), and exact ones do not need it (D = 3 with refits: 33.61 dB
-    # fitted on test at 0 against 33.50-33.56 at 1, training poses 1.90 against 1.97-2.00 degrees).
-    pose_fit_mask: float = 0.0
+    sh_rest_divisor: float = 20.0  # how much slower the higher SH bands learn (3DGS)
+    lr_rectifier: float = 1e-4  # the rectifier MLP's weights
+    adam_eps: float = 1e-15  # Adam's epsilon (3DGS)
 
     def validate(self) -> "OptimConfig":
-        check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor", "pose_refit_lr"),
-                     nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier",
-                                  "smooth_poses", "pose_fit_mask"),
-                     at_least_one=("pose_sweep_steps", "pose_refit_steps"))
+        check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
+                     nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier"))
         if self.iters < 1:
             raise UserError(f"iters must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
             raise UserError("optim.lr_position and optim.lr_position_final must be > 0")
-        if self.lr_pose < 0 or self.lr_pose_transl < 0:
-            raise UserError("optim.lr_pose and optim.lr_pose_transl must be >= 0")
-        if not 0 < self.lr_pose_final_scale <= 1:
-            raise UserError(f"optim.lr_pose_final_scale must be in (0, 1], got {self.lr_pose_final_scale}")
-        if not 0 <= self.pose_warmup < 1:
-            raise UserError(f"optim.pose_warmup must be in [0, 1), got {self.pose_warmup}")
-        for name in ("pose_sweeps", "pose_refits"):
-            value = getattr(self, name)
-            bad = not isinstance(value, (list, tuple)) or any(
-                isinstance(f, bool) or not isinstance(f, (int, float)) for f in value)
-            if bad or any(not 0 < f < 1 for f in value):
-                raise UserError(f"optim.{name} must be fractions of the run in (0, 1), got {value!r}")
-            setattr(self, name, tuple(float(f) for f in value))
-        f = self.pose_pass
-        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1:
-            raise UserError(f"optim.pose_pass must be a fraction of iters in [0, 1], got {self.pose_pass!r}")
         return self
-
-    def refines_poses(self, poses_estimated: bool) -> bool:
-        """Whether this run refines its training poses, for a dataset whose poses are (not) estimated."""
-        return bool(poses_estimated) if self.refine_poses is None else self.refine_poses
-
-    def pose_pass_iters(self, poses_estimated: bool) -> int:
-        """Iterations of the pose pass that comes before this run (``pose_pass``); 0 = none."""
-        if not self.refines_poses(poses_estimated) or self.pose_pass == 0:
-            return 0
-        return max(1, round(self.pose_pass * self.iters))
-
-    def pose_warmup_steps(self) -> int:
-        """Steps with frozen pose corrections; refinement starts at step ``pose_warmup_steps() + 1``."""
-        return round(self.pose_warmup * self.iters)
-
-    def pose_sweep_iterations(self, schedule=None, fractions: tuple[float, ...] | None = None) -> set[int]:
-        """The iteration counts after which the training poses are fitted (before the next step): at the
-        ``fractions`` of the run (default ``pose_sweeps``; the second pass: ``pose_refits``), each one that
-        falls on an opacity reset of ``schedule`` (a density DensitySchedule; None: no density control)
-        moved one earlier. Why: right after a reset every opacity is at most
-        ``density.reset_opacity_to`` (0.01) and the avatar is nearly invisible, so fitting the poses to
-        its renders learns little (measured at 128 px, 500 steps, 3 degrees of pose noise: sweeps at 0.3
-        and 0.6 of the run, both on resets, scored 0.54 dB below the same sweeps one step earlier on
-        fitted test frames, and 2.1 dB below on the avatar's own training frames; docs/train.md)."""
-        on_reset = (lambda s: False) if schedule is None else schedule.reset_at
-        planned = (max(1, round(f * self.iters)) for f in (self.pose_sweeps if fractions is None else fractions))
-        return {s - 1 if s > 1 and on_reset(s) else s for s in planned}
-
-    def pose_lr_scale(self, iteration: int) -> float:
-        """The pose corrections' lr factor before step ``iteration + 1``: 0 during the warm-up, then a
-        log-linear decay from 1 to ``lr_pose_final_scale`` at the last iteration."""
-        start = self.pose_warmup_steps()
-        if iteration < start:
-            return 0.0
-        return position_lr(iteration - start, self.iters - start, 1.0, self.lr_pose_final_scale)
 
     def build(self, avatar) -> torch.optim.Adam:
         """Adam over named parameter groups (eps ``adam_eps``).

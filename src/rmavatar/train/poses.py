@@ -9,7 +9,7 @@ The corrections have their own Adam, kept per frame: a frame's moments and step 
 the steps that train that frame. A shared dense Adam would keep moving every frame visited before on
 stale momentum; ``torch.optim.SparseAdam`` bias-corrects with the global step count, so a frame's first
 update would be a fraction of the intended size. Learning rates and their schedule (frozen during a
-warm-up, then a log-linear decay) are in :class:`rmavatar.train.optim.OptimConfig`.
+warm-up, then a log-linear decay) are in :class:`rmavatar.train.pose_refine.PoseConfig`.
 """
 
 from __future__ import annotations
@@ -21,18 +21,20 @@ import torch
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
 from rmavatar.body.corrections import correction_adam_step, pose_corrections
-from rmavatar.train.optim import OptimConfig
 from rmavatar.utils import UserError, atomic_path
 
 
 class PoseRefiner:
     """Corrections ``delta`` [n,75] of ``base`` (the dataset's poses of the n training frames) with
-    per-frame Adam state; ``betas`` [n,nb] or None is each frame's body shape. ``frozen``: the
-    corrections are held as set (:meth:`set_poses`; the second pass of ``optim.pose_pass``)."""
+    per-frame Adam state; ``betas`` [n,nb] or None is each frame's body shape; ``cfg`` (a
+    :class:`rmavatar.train.pose_refine.PoseConfig`) gives the learning rates and their schedule over a
+    pass of ``iters``. ``frozen``: the corrections are held as set (:meth:`set_poses`; the second pass of
+    ``poses.first_pass``)."""
 
-    def __init__(self, base: PoseSequence, betas: torch.Tensor | None, cfg: OptimConfig, device: torch.device,
+    def __init__(self, base: PoseSequence, betas: torch.Tensor | None, cfg, iters: int, device: torch.device,
                  frozen: bool = False):
         self.cfg = cfg
+        self.iters = iters
         self.frozen = frozen
         self.base = base.to(device)
         self.betas = None if betas is None else torch.as_tensor(betas, dtype=torch.float32).to(device)
@@ -41,8 +43,8 @@ class PoseRefiner:
         self.exp_avg = torch.zeros(n, CORRECTION_DIM, device=device)
         self.exp_avg_sq = torch.zeros(n, device=device)
         self.steps = torch.zeros(n, dtype=torch.long, device=device)
-        lr = torch.full((CORRECTION_DIM,), cfg.lr_pose, dtype=torch.float32)
-        lr[-3:] = cfg.lr_pose_transl
+        lr = torch.full((CORRECTION_DIM,), cfg.lr_rotation, dtype=torch.float32)
+        lr[-3:] = cfg.lr_translation
         self.lr = lr.to(device)
 
     def __len__(self) -> int:
@@ -50,7 +52,7 @@ class PoseRefiner:
 
     def active(self, iteration: int) -> bool:
         """Whether step ``iteration`` (1-based) trains the corrections (after the frozen warm-up)."""
-        return not self.frozen and iteration > self.cfg.pose_warmup_steps()
+        return not self.frozen and iteration > self.cfg.warmup_steps(self.iters)
 
     def posed(self, body, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Frame ``i``'s corrected body: vertices [V,3] (differentiable in ``delta``) and body_pose [69]
@@ -77,7 +79,7 @@ class PoseRefiner:
         rows = slice(i, i + 1)
         state = (self.delta, self.exp_avg, self.exp_avg_sq, self.steps)
         before = [t[rows].clone() for t in state]
-        lr = self.lr * self.cfg.pose_lr_scale(iteration - 1)
+        lr = self.lr * self.cfg.lr_scale(iteration - 1, self.iters)
         correction_adam_step(self.delta, torch.nan_to_num(grad[rows]), self.exp_avg, self.exp_avg_sq, self.steps,
                              rows, lr)
         for t, old in zip(state, before):

@@ -122,12 +122,12 @@ def read_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
-def write_yaml(cfg: Any, path: str | os.PathLike) -> None:
-    """Write the config dataclass ``cfg`` as YAML, atomically."""
+def write_yaml(cfg: Any, path: str | os.PathLike, header: dict | None = None) -> None:
+    """Write the config dataclass ``cfg`` as YAML, atomically, after the keys of ``header`` (if any)."""
     import yaml
 
     with atomic_path(path) as tmp:
-        tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+        tmp.write_text(yaml.safe_dump({**(header or {}), **to_dict(cfg)}, sort_keys=False))
 
 
 def flatten(values: dict, prefix: str = "") -> dict[str, Any]:

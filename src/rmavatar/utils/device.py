@@ -57,3 +57,33 @@ def set_host_scalar(owner, name: str, value, cast=float) -> None:
         buf = getattr(owner, name)
         buf.fill_(value)
         owner.__dict__["_host_scalars"][name] = (buf, buf._version, value)
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` CPU threads in torch and in the Numba rasterizer kernels."""
+    import numba
+    import torch
+
+    torch.set_num_threads(n)
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+
+
+def keep_freed_memory() -> None:
+    """Let glibc keep freed heap memory for reuse instead of returning it to the OS.
+
+    A CPU step allocates and frees tens of MB of tensors; by default glibc serves the large ones with
+    fresh mmaps and trims the heap after frees, so every step pays page faults that zero the memory
+    again (docs/train.md has the measurement). No-op where glibc's mallopt is not available.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
+    mallopt(M_MMAP_THRESHOLD, 32 * 2**20)  # glibc's largest allowed value on 64-bit
+    mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
+    mallopt(M_TOP_PAD, 256 * 2**20)
