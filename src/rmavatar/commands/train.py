@@ -55,17 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace):
     """The TrainConfig for a fresh run: --config file (or defaults), then command-line overrides."""
-    from rmavatar.train.config import TrainConfig, load_config
+    from rmavatar.train.config import TrainConfig, apply_overrides, load_config
 
     cfg = load_config(args.config) if args.config else TrainConfig()
-    cfg.data.path = args.data
-    for key, value in _overrides(args).items():
-        *sections, leaf = key.split(".")
-        node = cfg
-        for section in sections:
-            node = getattr(node, section)
-        setattr(node, leaf, value)
-    return cfg.validate()
+    return apply_overrides(cfg, {"data.path": args.data, **_overrides(args)}, where="the command line").validate()
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, object]:

@@ -21,8 +21,10 @@ from rmavatar.train.config import (
     apply_overrides,
     config_differences,
     config_from_dict,
+    flatten,
     load_config,
     save_config,
+    to_dict,
 )
 from rmavatar.train.frames import open_dataset
 from rmavatar.train.trainer import Trainer, TrainResult
@@ -135,11 +137,9 @@ def _check_resume_data(run: RunFolder, data: str | None, trained_on: str) -> Non
 def _resume_overrides(cfg: TrainConfig, overrides: dict[str, Any]) -> TrainConfig:
     """``cfg`` with the changeable ``overrides`` applied, validated; any other override must equal the
     run's own value."""
+    current = flatten(to_dict(cfg))
     for key, value in overrides.items():
-        node = cfg
-        for part in key.split(".")[:-1]:
-            node = getattr(node, part)
-        now = getattr(node, key.split(".")[-1])
+        now = current.get(key)
         if key not in RESUME_CHANGEABLE and now != value:
             raise UserError(f"--resume keeps the run's config: {key} is {now!r} there, cannot change it to "
                             f"{value!r} (start a new run instead)")
