@@ -174,10 +174,9 @@ class _JobRun:
                 result = train(cfg, self.run_dir, progress=False, on_iteration=self._on_iteration)
             else:
                 result = train(None, self.run_dir, resume=True, data=cfg.data.path, progress=False,
-                               on_iteration=self._on_iteration, overrides=[
-                                   (cfg.optim.iters, "optim", "iters"), (self.threads, None, "threads"),
-                                   (self.device, None, "device"),
-                                   (cfg.log.checkpoint_every, "log", "checkpoint_every")])
+                               on_iteration=self._on_iteration, overrides={
+                                   "optim.iters": cfg.optim.iters, "threads": self.threads, "device": self.device,
+                                   "log.checkpoint_every": cfg.log.checkpoint_every})
             self.iteration = result.iteration
             self.write_progress(force=True)
             self.train_started = None

@@ -136,17 +136,16 @@ def _trained(data: str, run: str | None, gaussians: int | None):
 
     if run is not None:
         return load_trained(run), "trained run " + str(run)
-    from rmavatar.body import load_body_model
     from rmavatar.data import load_dataset
     from rmavatar.train.config import TrainConfig
-    from rmavatar.train.trainer import resolve_body
+    from rmavatar.train.trainer import load_body
 
     cfg = TrainConfig()
     if gaussians:
         cfg.model.placement, cfg.model.num_gaussians = "area", gaussians
     dataset = load_dataset(data)
-    spec, gender = resolve_body(cfg, dataset)
-    body = load_body_model(spec, gender=gender)
+    body, info = load_body(cfg, dataset, None, data)
+    spec = info["spec"]
     avatar = cfg.model.build(body, seed=cfg.seed).eval()
     betas = training_betas(dataset.params("train")) if body.num_betas > 0 else None
     desc = f"freshly initialised (untrained) avatar on {spec}, {avatar.num_gaussians} Gaussians"
