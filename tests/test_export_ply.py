@@ -1,5 +1,6 @@
 """The 3DGS PLY writer/reader on plain Gaussians: file layout checked with an independent reader
-(plyfile), values against the 3DGS definitions, and a render round trip."""
+(plyfile), values against the 3DGS definitions, the y-up / y-down world conventions, and render round
+trips."""
 
 import os
 
@@ -7,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from rmavatar.export.ply import ply_property_names, read_ply, write_ply
+from rmavatar.export.ply import ply_property_names, ply_up, read_ply, write_ply
+from rmavatar.render.project import quat_to_rotmat, sh_basis
 from rmavatar.utils import UserError
 
 plyfile = pytest.importorskip("plyfile")
@@ -28,9 +30,10 @@ def random_gaussians(n=200, degree=1, seed=0):
 @pytest.mark.parametrize("degree", [0, 1, 3])
 def test_plyfile_reads_standard_layout(tmp_path, degree):
     gs = random_gaussians(degree=degree)
-    path = write_ply(tmp_path / "a.ply", **gs)
+    path = write_ply(tmp_path / "a.ply", **gs, up="y")  # y up: the values are the Gaussians' own
     ply = plyfile.PlyData.read(str(path))
     assert ply.text is False and ply.byte_order == "<"
+    assert "rmavatar up y" in ply.comments
     assert [e.name for e in ply.elements] == ["vertex"]
     v = ply["vertex"]
     K = (degree + 1) ** 2
@@ -70,6 +73,103 @@ def test_read_ply_round_trip(tmp_path):
     for name, ref in (("means", gs["means"]), ("quats", q), ("scales", gs["scales"]),
                       ("opacities", gs["opacities"]), ("sh", gs["sh"])):
         torch.testing.assert_close(getattr(back, name), ref, rtol=1e-5, atol=1e-6, msg=name)
+
+
+# 180 degrees about x: y up <-> y down (the 3DGS / COLMAP convention of the default file)
+TURN = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_default_file_is_turned_to_y_down(tmp_path, degree):
+    """The default file holds the Gaussians turned 180 degrees about x: positions, rotations and the
+    view-dependent colour all turned (checked from plyfile's values, not our reader)."""
+    gs = random_gaussians(n=100, degree=degree, seed=11)
+    path = write_ply(tmp_path / "down.ply", **gs)
+    ply = plyfile.PlyData.read(str(path))
+    assert "rmavatar up -y" in ply.comments and ply_up(path) == "-y"
+    v = ply["vertex"]
+    col = lambda name: torch.tensor(np.asarray(v[name]), dtype=torch.float64)  # noqa: E731
+    means = torch.stack([col("x"), col("y"), col("z")], 1)
+    torch.testing.assert_close(means, gs["means"].double() @ TURN.double().T, atol=1e-7, rtol=0)
+    rot = quat_to_rotmat(torch.stack([col(f"rot_{i}") for i in range(4)], 1))
+    torch.testing.assert_close(rot, TURN.double() @ quat_to_rotmat(gs["quats"].double()), atol=1e-6, rtol=0)
+    K = (degree + 1) ** 2
+    sh = torch.empty(100, K, 3, dtype=torch.float64)
+    sh[:, 0] = torch.stack([col(f"f_dc_{c}") for c in range(3)], 1)
+    for c in range(3):
+        for k in range(1, K):
+            sh[:, k, c] = col(f"f_rest_{c * (K - 1) + (k - 1)}")
+    # seen along the turned direction, the file's SH give the colour the original gives along d
+    dirs = torch.randn(100, 3, dtype=torch.float64)
+    before = torch.einsum("nk,nkc->nc", sh_basis(degree, dirs), gs["sh"].double())
+    after = torch.einsum("nk,nkc->nc", sh_basis(degree, dirs @ TURN.double().T), sh)
+    torch.testing.assert_close(after, before, atol=1e-6, rtol=0)
+    if degree > 0:
+        assert not torch.allclose(sh[:, 1:], gs["sh"][:, 1:].double(), atol=1e-3)  # they were turned
+
+
+def test_y_down_file_renders_as_the_scene_seen_turned(tmp_path):
+    """The y-down file as stored, seen by the camera turned with it, is the original picture."""
+    from rmavatar.animate.camera import intrinsics, look_at
+    from rmavatar.render import rasterize
+
+    gs = random_gaussians(n=300, degree=3, seed=8)
+    raw = read_ply(write_ply(tmp_path / "d.ply", **gs), up=None)
+    view = look_at([0.4, 0.3, 2.0], [0.0, 0.0, 0.0])
+    turned = view.clone()
+    turned[:3, :3] = view[:3, :3] @ TURN  # world -> camera of the y-down world
+    K = intrinsics(48, 40, 45.0)
+    bg = torch.ones(3)
+    ref, _, _ = rasterize(gs["means"], gs["quats"], gs["scales"], gs["opacities"], gs["sh"], view, K, 48, 40,
+                          background=bg, sh_degree=3)
+    img, _, _ = rasterize(raw.means, raw.quats, raw.scales, raw.opacities, raw.sh, turned, K, 48, 40,
+                          background=bg, sh_degree=3)
+    assert float((ref - 1).abs().amax()) > 0.1
+    assert float((img - ref).abs().max()) < 1e-5
+    # and the raw file from the unturned camera is not the same picture (the turn is really there)
+    wrong, _, _ = rasterize(raw.means, raw.quats, raw.scales, raw.opacities, raw.sh, view, K, 48, 40,
+                            background=bg, sh_degree=3)
+    assert float((wrong - ref).abs().max()) > 0.1
+
+
+def test_read_ply_conventions(tmp_path):
+    """read_ply brings both conventions back to y up (or to -y, or leaves the file as stored); a 3DGS file
+    without our header comment is y down."""
+    gs = random_gaussians(n=50, degree=3, seed=4)
+    q = gs["quats"] / gs["quats"].norm(dim=1, keepdim=True)
+    down, up = write_ply(tmp_path / "down.ply", **gs), write_ply(tmp_path / "up.ply", **gs, up="y")
+    assert (ply_up(down), ply_up(up)) == ("-y", "y")
+    for path in (down, up):
+        back = read_ply(path)
+        torch.testing.assert_close(back.means, gs["means"], atol=1e-6, rtol=0)
+        torch.testing.assert_close(back.quats, q, atol=1e-6, rtol=0)
+        torch.testing.assert_close(back.sh, gs["sh"], atol=1e-6, rtol=0)
+    # up="-y" gives the y-down Gaussians whichever way the file was written; the turn is exact
+    for name in ("means", "quats", "sh"):
+        stored = getattr(read_ply(down, up=None), name)
+        torch.testing.assert_close(getattr(read_ply(up, up="-y"), name), stored, atol=0, rtol=0)
+        torch.testing.assert_close(getattr(read_ply(down, up="-y"), name), stored, atol=0, rtol=0)
+    # someone else's 3DGS file: same data, no comment -> y down
+    data = plyfile.PlyData.read(str(down))["vertex"].data
+    other = tmp_path / "other.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")]).write(str(other))
+    assert ply_up(other) == "-y"
+    torch.testing.assert_close(read_ply(other).means, gs["means"], atol=1e-6, rtol=0)
+    torch.testing.assert_close(read_ply(other, up=None).means, read_ply(down, up=None).means, atol=0, rtol=0)
+
+
+def test_bad_conventions(tmp_path):
+    gs = random_gaussians(n=5)
+    with pytest.raises(UserError, match="up must be -y .* or y"):
+        write_ply(tmp_path / "z.ply", **gs, up="z")
+    assert not (tmp_path / "z.ply").exists()
+    good = write_ply(tmp_path / "g.ply", **gs)
+    with pytest.raises(UserError, match="up must be"):
+        read_ply(good, up="+z")
+    odd = tmp_path / "odd.ply"
+    odd.write_bytes(good.read_bytes().replace(b"comment rmavatar up -y\n", b"comment rmavatar up z\n", 1))
+    with pytest.raises(UserError, match="unknown world convention .*'z'"):
+        read_ply(odd)
 
 
 def test_read_ply_written_by_plyfile_big_endian(tmp_path):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rmavatar.avatar.trained import TrainedAvatar
 from rmavatar.body import PoseSequence, motion_to_sequence
-from rmavatar.export.ply import write_ply
+from rmavatar.export.ply import DEFAULT_UP, write_ply
 from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_file
 
@@ -32,8 +32,12 @@ def pose_for_export(trained: TrainedAvatar, motion_path: str | None, frame: int,
     return seq.select(slice(k, k + 1))
 
 
-def export_ply(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike, overwrite: bool = False) -> int:
-    """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count."""
+def export_ply(trained: TrainedAvatar, seq: PoseSequence, out: str | os.PathLike, overwrite: bool = False,
+               up: str = DEFAULT_UP) -> int:
+    """Write the avatar posed by the single pose ``seq`` to ``out``; returns the Gaussian count.
+
+    ``up``: the file's world convention, "-y" (default: y down, as stock 3DGS viewers expect) or "y"
+    (SMPL's y-up world); see :mod:`rmavatar.export.ply`."""
     gs = trained.pose(seq, 0)
-    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh(), overwrite=overwrite)
+    write_ply(out, gs.means, gs.quats, gs.scales, gs.opacities, gs.world_sh(), up=up, overwrite=overwrite)
     return int(gs.means.shape[0])
