@@ -133,6 +133,69 @@ def test_sigterm_also_saves_and_stops(data, tmp_path, monkeypatch):
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers restored
 
 
+def test_one_writer_per_run_folder_and_a_dead_writers_lock_is_taken_over(data, tmp_path):
+    """Two real processes: while `rmavatar train` trains into RUN, a second `rmavatar train` into the same
+    --out (fresh or --resume) is refused at once, naming the first one's process, and writes nothing;
+    after the first is killed (SIGKILL: it never released anything itself), --resume takes over."""
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", "400",
+           "--size", str(SIZE), "--checkpoint-every", "2", "--threads", "1"]
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = RunFolder(run).checkpoint
+    try:
+        deadline = time.time() + 120
+        while not (path.is_file() and read_checkpoint(path).iteration >= 2):
+            assert first.poll() is None, "training ended early"
+            assert time.time() < deadline, "no checkpoint within 120 s"
+            time.sleep(0.05)
+        before = sorted(p.name for p in run.rglob("*") if "tb" not in p.parts)
+        for extra in ([], ["--resume"]):
+            second = subprocess.run(cmd + extra, capture_output=True, text=True, timeout=300)
+            assert second.returncode == 2, second.stderr[-2000:]
+            assert f"is being trained by process {first.pid} on " in second.stderr, second.stderr[-2000:]
+            assert "Traceback" not in second.stderr
+        assert sorted(p.name for p in run.rglob("*") if "tb" not in p.parts) == before
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    finally:
+        first.kill()
+        first.wait()
+    saved = read_checkpoint(path).iteration
+    result = train(None, run, resume=True, overrides={"optim.iters": saved + 2}, progress=False)
+    assert result.iteration == saved + 2
+    assert not (run / ".rmavatar-run.lock").exists()  # released (and removed) by the run that held it
+
+
+def test_resume_applies_config_edits_that_may_change_and_refuses_the_rest(data, tmp_path):
+    """A hand edit of RUN/config.yaml since the checkpoint is never silently dropped: a run's length and
+    its reporting are applied by --resume (and stay in the file), the model's settings are refused with
+    the changed keys named, the file and the checkpoint left as they were."""
+    import yaml
+
+    run = tmp_path / "run"
+    train(_cfg(data, 4), run, progress=False)
+    config = RunFolder(run).config
+    doc = yaml.safe_load(config.read_text())
+    doc["optim"]["iters"], doc["log"]["preview_every"], doc["log"]["progress_every"] = 6, 5, 1
+    config.write_text(yaml.safe_dump(doc, sort_keys=False))
+    result = train(None, run, resume=True, progress=False)
+    assert result.iteration == 6 and (run / "previews" / "iter_000005.png").is_file()
+    assert [h["iteration"] for h in result.history] == [5, 6]
+    saved = read_checkpoint(RunFolder(run).checkpoint).config
+    assert saved["optim"]["iters"] == 6 and saved["log"]["preview_every"] == 5
+    kept = yaml.safe_load(config.read_text())
+    assert kept["optim"]["iters"] == 6 and kept["log"]["preview_every"] == 5
+    doc = kept
+    doc["model"]["sh_degree"], doc["loss"]["offset"], doc["optim"]["iters"] = 1, 0.5, 8
+    edited = yaml.safe_dump(doc, sort_keys=False)
+    config.write_text(edited)
+    ckpt_bytes = RunFolder(run).checkpoint.read_bytes()
+    with pytest.raises(UserError, match=r"edited since its checkpoint \(loss.offset: 1.0 -> 0.5; "
+                                        r"model.sh_degree: 3 -> 1\): these settings cannot change"):
+        train(None, run, resume=True, progress=False)
+    assert config.read_text() == edited and RunFolder(run).checkpoint.read_bytes() == ckpt_bytes
+
+
 def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_path):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "rmavatar", "train", data, "--out", str(run), "--iters", "400",

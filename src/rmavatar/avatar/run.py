@@ -11,18 +11,22 @@ A run folder holds::
     RUN/pose_error.json          the training poses' error vs the true ones (synthetic subjects)
     RUN/previews/*.png           render | target previews
     RUN/tb/                      TensorBoard event files
+    RUN/.rmavatar-run.lock       held (flock) by the one process training into RUN, naming it
 
 Only training writes checkpoints (``rmavatar.train.checkpoint``); everything reads them here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import socket
+import time
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -31,6 +35,7 @@ from rmavatar.utils import UserError, atomic_path
 from rmavatar.utils.errors import load_error
 
 MARKER = "rmavatar-run.json"
+LOCK = ".rmavatar-run.lock"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # The version of the checkpoint and of the training config's layout, raised together (the history is
 # in MIGRATIONS below).
@@ -90,6 +95,58 @@ class RunFolder:
         if not self.has_checkpoint():
             raise UserError(f"{self.path} has no checkpoint yet ({self.checkpoint} missing): train it first")
 
+    def refuse_foreign(self) -> None:
+        """Raise UserError when the folder exists and is not ours to write into: not a folder, or a folder
+        holding files without our marker (someone else's)."""
+        if self.path.exists() and not self.path.is_dir():
+            raise UserError(f"--out {self.path} exists and is not a folder")
+        if self.path.is_dir() and self.read_marker() is None and any(p.name != LOCK for p in self.path.iterdir()):
+            raise UserError(f"--out {self.path} is not empty and holds no rmavatar run ({MARKER} missing): "
+                            "refusing to write into someone else's folder; choose an empty or new folder")
+
+    @contextlib.contextmanager
+    def writer_lock(self) -> Iterator[None]:
+        """Hold the run's lock while training writes into it: a second writer (another ``rmavatar train``
+        of the same folder, a batch worker) is refused with a message naming the process that holds it.
+        An exclusive ``flock`` on RUN/.rmavatar-run.lock: the kernel releases it when its process dies, so
+        a killed run's lock is taken over by the next one. A folder this made, and left as empty as it
+        found it, is removed again."""
+        import fcntl
+
+        self.refuse_foreign()
+        created = not self.path.exists()
+        self.path.mkdir(parents=True, exist_ok=True)
+        path = self.path / LOCK
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise UserError(f"--out {self.path} is being trained by {self._holder(path)}: wait for it to "
+                                "finish or stop it, or choose another folder") from None
+            if os.path.exists(path) and os.stat(path).st_ino == os.fstat(fd).st_ino:
+                break  # the lock file is still the one at the path (not unlinked by its last holder)
+            os.close(fd)
+        try:
+            holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+            os.ftruncate(fd, 0)
+            os.write(fd, json.dumps(holder).encode())
+            yield
+        finally:
+            os.unlink(path)
+            os.close(fd)
+            if created and not any(self.path.iterdir()):
+                self.path.rmdir()
+
+    @staticmethod
+    def _holder(path: Path) -> str:
+        try:
+            h = json.loads(path.read_text())
+            return f"process {h['pid']} on {h['host']} (since {h['since']})"
+        except (OSError, ValueError, KeyError, TypeError):
+            return f"another process ({path} is locked)"
+
     def prepare(self, data_spec: str, resume: bool) -> None:
         """Create or check the folder before training writes anything into it.
 
@@ -98,13 +155,9 @@ class RunFolder:
         or another dataset) is only continued with ``resume``, which needs our run of the same dataset
         with a checkpoint."""
         run_dir = self.path
-        if run_dir.exists() and not run_dir.is_dir():
-            raise UserError(f"--out {run_dir} exists and is not a folder")
+        self.refuse_foreign()
         marker = self.read_marker() if run_dir.is_dir() else None
         if marker is None:
-            if run_dir.is_dir() and any(run_dir.iterdir()):
-                raise UserError(f"--out {run_dir} is not empty and holds no rmavatar run ({MARKER} missing): "
-                                "refusing to write into someone else's folder; choose an empty or new folder")
             if resume:
                 raise UserError(f"--resume: {run_dir} holds no run to resume")
             run_dir.mkdir(parents=True, exist_ok=True)

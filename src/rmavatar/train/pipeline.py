@@ -30,8 +30,9 @@ from rmavatar.train.frames import open_dataset
 from rmavatar.train.trainer import Trainer, TrainResult
 from rmavatar.utils import UserError, check_writable_folder
 
-# What a resumed run may change (dotted keys); any other override must equal the run's own value.
-RESUME_CHANGEABLE = ("optim.iters", "log.checkpoint_every", "threads", "device")
+# What a resumed run may change (dotted keys; "log." every reporting setting): its length, where and how
+# fast it runs, what it reports. Anything else (the model, the losses, the schedules' shape) is the run's.
+RESUME_CHANGEABLE = ("optim.iters", "threads", "device", "log.")
 # The second pass's settings, which its first pass does not use.
 HELD_FIT_KEYS = ("poses.held_fits", "poses.held_fit_steps", "poses.held_fit_lr_rotation",
                  "poses.held_fit_lr_translation")
@@ -43,13 +44,21 @@ def train(cfg: TrainConfig | None, run_dir: str | Path, *, resume: bool = False,
     """Train an avatar into ``run_dir``.
 
     Fresh run: ``cfg`` is the full config. Resume: ``cfg`` is None, the run's checkpoint supplies the
-    config; ``data`` (if given) must name the same dataset; ``overrides`` (dotted keys, ``{"optim.iters":
-    8000}``) may change only :data:`RESUME_CHANGEABLE`, anything else that differs is an error.
+    config (with RUN/config.yaml's edits since, where they may change mid-run); ``data`` (if given) must
+    name the same dataset; ``overrides`` (dotted keys, ``{"optim.iters": 8000}``) may change only
+    :data:`RESUME_CHANGEABLE`, anything else that differs is an error. One process at a time trains into
+    a run folder (RunFolder.writer_lock).
     ``on_iteration(iteration, total)`` is called after every iteration, once any checkpoint of that
     iteration is written (``rmavatar batch`` reports progress with it).
     """
     run, overrides = RunFolder(run_dir), dict(overrides or {})
     check_writable_folder(run.config, f"--out {run.path}", create=True)
+    with run.writer_lock():  # one writer per run folder, from before anything is written
+        return _train(cfg, run, resume, data, overrides, progress, on_iteration)
+
+
+def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | None, overrides: dict[str, Any],
+           progress: bool, on_iteration) -> TrainResult:
     in_first_pass = resume and not run.has_checkpoint() and run.pose_pass.has_checkpoint()
     ckpt = None
     if in_first_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
@@ -58,7 +67,8 @@ def train(cfg: TrainConfig | None, run_dir: str | Path, *, resume: bool = False,
         cfg = _resume_overrides(cfg, overrides)
     elif resume:
         ckpt = _resume_checkpoint(run, data)
-        cfg = _resume_overrides(config_from_dict(ckpt.config, where=f"{run.checkpoint}:config"), overrides)
+        cfg = config_from_dict(ckpt.config, where=f"{run.checkpoint}:config")
+        cfg = _resume_overrides(_with_config_edits(cfg, run), overrides)
         if cfg.optim.iters < ckpt.iteration:
             raise UserError(f"--iters {cfg.optim.iters} is below the {ckpt.iteration} iterations {run.path} has "
                             "done: give more to continue it (or start a new run)")
@@ -134,14 +144,34 @@ def _check_resume_data(run: RunFolder, data: str | None, trained_on: str) -> Non
         raise UserError(f"--resume: {run.path} is a run of {trained_on!r}, not of {normalize_data_spec(data)!r}")
 
 
+def _changeable(key: str) -> bool:
+    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RESUME_CHANGEABLE)
+
+
+def _with_config_edits(cfg: TrainConfig, run: RunFolder) -> TrainConfig:
+    """``cfg`` (the checkpoint's) with the edits the user made to RUN/config.yaml since: applied where a
+    running training may change (:data:`RESUME_CHANGEABLE`), else refused, naming the keys; never
+    silently dropped (the resumed run writes its config back)."""
+    if not run.config.is_file():
+        return cfg
+    saved, edited = flatten(to_dict(cfg)), flatten(to_dict(load_config(run.config, as_trained=True)))
+    changed = sorted(k for k in set(saved) | set(edited) if saved.get(k) != edited.get(k))
+    fixed = [f"{k}: {saved.get(k)!r} -> {edited.get(k)!r}" for k in changed if not _changeable(k)]
+    if fixed:
+        raise UserError(f"{run.config} was edited since its checkpoint ({'; '.join(fixed[:6])}): these settings "
+                        f"cannot change in the middle of a run (only {', '.join(RESUME_CHANGEABLE)}* can); undo "
+                        f"the edit, or start a new run with it: rmavatar train DATA --out NEW --config {run.config}")
+    return apply_overrides(cfg, {k: edited[k] for k in changed}, where=str(run.config)) if changed else cfg
+
+
 def _resume_overrides(cfg: TrainConfig, overrides: dict[str, Any]) -> TrainConfig:
     """``cfg`` with the changeable ``overrides`` applied, validated; any other override must equal the
     run's own value."""
     current = flatten(to_dict(cfg))
     for key, value in overrides.items():
         now = current.get(key)
-        if key not in RESUME_CHANGEABLE and now != value:
+        if not _changeable(key) and now != value:
             raise UserError(f"--resume keeps the run's config: {key} is {now!r} there, cannot change it to "
                             f"{value!r} (start a new run instead)")
-    changeable = {k: v for k, v in overrides.items() if k in RESUME_CHANGEABLE}
+    changeable = {k: v for k, v in overrides.items() if _changeable(k)}
     return (apply_overrides(cfg, changeable, where="--resume") if changeable else cfg).validate()

@@ -11,7 +11,7 @@ is kept beside the user's cache: a registry of the files rmavatar wrote with the
 file is replaced only when its content is still what rmavatar wrote there, or with ``--overwrite``.
 Copying a file elsewhere or editing it loses the proof, which errs on the side of refusing.
 
-Run folders keep their own marker (``rmavatar-run.json``, see :mod:`rmavatar.avatar.trained`): training
+Run folders keep their own marker (``rmavatar-run.json``, see :mod:`rmavatar.avatar.run`): training
 never deletes anything in them, it only refuses folders that are not its runs.
 """
 
