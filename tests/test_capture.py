@@ -583,3 +583,21 @@ def test_proxy_follows_an_smpl_format_body_and_its_betas(tmp_path):
         out = body(betas.expand(3, -1), go, bp, tr)
     np.testing.assert_allclose(joints.numpy(), out.joints.numpy(), atol=2e-5)
     assert float((points - out.vertices[:, ids]).norm(dim=-1).mean()) < 0.05
+
+
+def test_split_sizes_no_frame_count_can_fill_are_refused_before_any_work(tmp_path):
+    """--test-fraction 0.99 of a 5-frame clip leaves no training frame whatever is found in it: refused
+    before decoding or detection (it was found only after the whole fit), naming the option; nothing is
+    written."""
+    from rmavatar.capture import CaptureConfig, capture
+    from rmavatar.utils import UserError
+
+    from helpers import save_png
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(5):
+        save_png(frames / f"{i:03d}.png", np.full((32, 24, 3), 200, np.uint8))
+    with pytest.raises(UserError, match=r"5 frames in all leave no training frame with --test-fraction 0.99"):
+        capture(frames, tmp_path / "out", CaptureConfig(test_fraction=0.99), progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]

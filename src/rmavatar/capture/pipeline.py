@@ -176,6 +176,17 @@ def _check_clip(clip: _Clip, source) -> None:
                         f"the whole body of one person must be in view in most frames")
 
 
+def _splits(n: int, test_fraction: float, name, which: str) -> dict[str, list[int]]:
+    """The train / test split of ``n`` frames (the test split: the clip's last ``test_fraction``); a
+    UserError when either would be empty."""
+    n_test = max(1, int(round(test_fraction * n)))
+    if n - n_test < 1:
+        raise UserError(f"input {name}: {n} frames {which} leave no training frame with --test-fraction "
+                        f"{test_fraction:g} ({n_test} test frames); give a smaller --test-fraction or a longer "
+                        "clip (at least 2 frames are needed)")
+    return {"train": list(range(n - n_test)), "test": list(range(n - n_test, n))}
+
+
 def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     import torch
     from scipy import ndimage
@@ -223,6 +234,10 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     body = load_body_model(cfg.body).to(device)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
+    if source.count:  # the clip's length is known: a split no frame count up to it can fill is refused now
+        total = source.count if cfg.fps is None or cfg.fps >= source.fps else \
+            int(math.ceil(source.count * cfg.fps / source.fps))
+        _splits(total, cfg.test_fraction, source.path, "in all")
     timings = {}
     scratch = Path(tempfile.mkdtemp(prefix=tmp_prefix(out.name + ".frames"), dir=parent))
     try:
@@ -230,15 +245,12 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         clip, size = _detect(source, cfg, scratch, progress)
         timings["detect_seconds"] = time.perf_counter() - t0
         _check_clip(clip, source)
+        n = len(clip.index)
+        splits = _splits(n, cfg.test_fraction, source.path, "with a person")  # before the fit's minutes
         K = intrinsics(*size, fov=cfg.fov, focal=cfg.focal)
         obs = _observations(clip, K, size, device)
         result = fit_body(body, obs, cfg.fit, progress=progress)
         timings["fit_seconds"] = result.seconds
-        n = len(clip.index)
-        n_test = max(1, int(round(cfg.test_fraction * n)))
-        splits = {"train": list(range(n - n_test)), "test": list(range(n - n_test, n))}
-        if not splits["train"]:
-            raise UserError(f"input {source.path}: only {n} frames with a person; at least 2 are needed")
         out_fps = source.fps if cfg.fps is None else min(cfg.fps, source.fps)
         spec = getattr(body, "spec", cfg.body)
         preset = spec.partition(":")[2] if spec.startswith("anny:") else None
