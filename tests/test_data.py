@@ -599,3 +599,109 @@ def test_export_native_roundtrip_from_peoplesnapshot(tmp_path):
             np.testing.assert_allclose(b.camera.K, a.camera.K, atol=1e-6)
             for key in ("betas", "global_orient", "body_pose", "transl"):
                 np.testing.assert_allclose(getattr(b, key), getattr(a, key), atol=1e-6)
+
+
+# --- meta.yaml's schema (a file users write by hand) ---------------------------------------------------------
+META_CASES = [  # (key, YAML value or None to delete it, text the UserError must hold after "meta.yaml: ")
+    ("fps", "fast", "fps must be a number > 0 (frames per second) or null, got 'fast'"),
+    ("fps", "-25", "fps must be a number > 0 (frames per second) or null, got -25"),
+    ("fps", ".nan", "fps must be a number > 0"),
+    ("fps", "true", "fps must be a number > 0 (frames per second) or null, got True"),
+    ("width", "-8", "width must be an integer >= 1, got -8"),
+    ("height", "'6'", "height must be an integer >= 1, got '6'"),
+    ("height", "6.5", "height must be an integer >= 1, got 6.5"),
+    ("num_frames", "0", "num_frames must be an integer >= 1, got 0"),
+    ("splits", "{train: [0, 2, 2, 4]}", "split 'train' lists frame(s) [2] more than once"),
+    ("splits", "{train: [0, two]}", "split 'train' must hold frame indices (integers), got 'two'"),
+    ("splits", "{train: [0, 1.5]}", "split 'train' must hold frame indices (integers), got 1.5"),
+    ("splits", "{train: [0, true]}", "split 'train' must hold frame indices (integers), got True"),
+    ("splits", "{train: 3}", "split 'train' must be a list of frame indices, got 3"),
+    ("splits", "[0, 1]", "'splits' must map split names to lists of frame indices"),
+    ("name", "[a, b]", "name must be a string, got ['a', 'b']"),
+    ("gender", "true", "gender must be one of ('male', 'female', 'neutral') or null, got True"),
+    ("body", "5", "body must be a body spec (a string such as anny:female) or null, got 5"),
+    ("poses", "[given]", "poses must be one of ('given', 'estimated'), got ['given']"),
+    ("extra", "[1, 2]", "extra must be a mapping (free-form key: value lines) or null, got [1, 2]"),
+    ("fsp", "25", "unknown key(s) fsp (known: format, version,"),
+]
+
+
+def _edit_meta(root, key, value):
+    import yaml
+
+    doc = yaml.safe_load((root / "meta.yaml").read_text())
+    if value is None:
+        doc.pop(key)
+    else:
+        doc[key] = yaml.safe_load(value)
+    (root / "meta.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+@pytest.mark.parametrize("key, value, needle", META_CASES, ids=[f"{k}={v}" for k, v, _ in META_CASES])
+def test_native_meta_schema_names_the_key_and_what_was_expected(tmp_path, key, value, needle):
+    out = tmp_path / "nat"
+    make_native(out)
+    _edit_meta(out, key, value)
+    with pytest.raises(UserError) as info:
+        load_dataset(out)
+    assert str(info.value) == f"{out / 'meta.yaml'}: {needle}" or str(info.value).startswith(
+        f"{out / 'meta.yaml'}: {needle}"), str(info.value)
+
+
+def test_native_meta_accepts_what_yaml_writes_for_numbers(tmp_path):
+    out = tmp_path / "nat"
+    make_native(out)
+    _edit_meta(out, "fps", "3e1")  # PyYAML reads this as a string
+    _edit_meta(out, "width", "8.0")
+    _edit_meta(out, "extra", "null")
+    ds = load_dataset(out)
+    assert ds.fps == 30.0 and ds.source_size == (8, 6)
+    _edit_meta(out, "fps", "null")
+    _edit_meta(out, "poses", None)
+    assert load_dataset(out).fps is None and not load_dataset(out).poses_estimated
+
+
+def test_native_meta_file_not_utf8_or_not_yaml(tmp_path):
+    out = tmp_path / "nat"
+    make_native(out)
+    text = (out / "meta.yaml").read_text()
+    (out / "meta.yaml").write_text(text, encoding="utf-16")
+    with pytest.raises(UserError, match=r"dataset file .*nat/meta.yaml is UTF-16 \(little-endian\) text, not UTF-8: "
+                                        r"save it as UTF-8"):
+        load_dataset(out)
+    (out / "meta.yaml").write_text(text + "splits: {train: [0\n")
+    with pytest.raises(UserError, match=r"dataset file .*nat/meta.yaml is not valid YAML: line \d+, column \d+"):
+        load_dataset(out)
+    (out / "meta.yaml").write_text(text + "name: again\n")
+    with pytest.raises(UserError, match=r"meta.yaml is not valid YAML: line \d+, column 1: the key 'name' is given "
+                                        r"twice \(first on line 3\)"):
+        load_dataset(out)
+
+
+def test_write_native_checks_the_meta_fields(tmp_path):
+    _, _, cams, params = make_native(tmp_path / "nat")
+    frames = ([np.zeros((6, 8, 3))] * 6, [np.zeros((6, 8))] * 6)
+    for meta, needle in (({"fps": "fast"}, "fps must be a number > 0"), ({"name": None}, "name must be a string"),
+                         ({"splits": {"train": [1, 1]}}, r"lists frame\(s\) \[1\] more than once"),
+                         ({"extra": [1]}, "extra must be a mapping")):
+        with pytest.raises(UserError, match=f"write_native: .*{needle}"):
+            write_native(tmp_path / "out", {"name": "x", "splits": {"train": [0]}, **meta}, cams, params, *frames,
+                         progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_peoplesnapshot_splits_file_types(tmp_path):
+    root = tmp_path / "female-x"
+    make_peoplesnapshot(root, {"train": [0, 2, 4], "test": [1, 3]}, total=5)
+    for text, needle in (("train: {start: zero, end: 4}\n", r"train.start: expected a frame number \(an integer >= 0\), "
+                                                            r"got 'zero'"),
+                         ("train: {start: 0, end: 4, step: 0}\n", "train.step: expected an integer >= 1, got 0"),
+                         ("train: {start: 0, end: 4, stride: 2}\n", "split 'train' has unknown key"),
+                         ("train: [0, -1]\n", "split 'train': expected a frame number .* got -1"),
+                         ("- 1\n", "must map split names")):
+        (root / "splits.yaml").write_text(text)
+        with pytest.raises(UserError, match=f"splits.yaml: {needle}" if "must map" not in needle else needle):
+            load_dataset(root)
+    (root / "splits.yaml").write_text("train: [0, 2]\n", encoding="utf-16")
+    with pytest.raises(UserError, match=r"splits file .*splits.yaml is UTF-16"):
+        load_dataset(root)

@@ -100,15 +100,10 @@ class Job:
 # ----------------------------------------------------------------------------------------------- reading
 def load_jobs(path: str | os.PathLike) -> list[Job]:
     """Read and validate a JOBS.yaml; every problem is a UserError naming the file, the job and the key."""
-    import yaml
+    from rmavatar.utils.files import read_yaml_file
 
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"jobs file {path} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise UserError(f"jobs file {path} is not valid YAML: {exc}") from None
+    data = read_yaml_file(path, "jobs file", mapping=False)  # parse_jobs says what the top level must be
     return parse_jobs(data, base=path.resolve().parent, where=str(path))
 
 

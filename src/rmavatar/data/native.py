@@ -133,13 +133,87 @@ def _check_splits(splits: Mapping, n: int, where: str) -> dict[str, list[int]]:
     out = {}
     for name, idx in splits.items():
         if not isinstance(idx, (list, tuple, np.ndarray)):
-            raise UserError(f"{where}: split '{name}' must be a list of frame indices")
-        idx = [int(i) for i in idx]
+            raise UserError(f"{where}: split '{name}' must be a list of frame indices, got {_shown(idx)}")
+        if isinstance(idx, np.ndarray):
+            if idx.ndim != 1:
+                raise UserError(f"{where}: split '{name}' must be a list of frame indices, got an array of "
+                                f"shape {list(idx.shape)}")
+            idx = idx.tolist()
+        idx = [_frame_index(i, f"{where}: split '{name}'") for i in idx]
         bad = [i for i in idx if not 0 <= i < n]
         if bad:
             raise UserError(f"{where}: split '{name}' refers to frames {bad[:5]} outside 0..{n - 1}")
+        seen: set[int] = set()
+        twice = sorted({i for i in idx if i in seen or seen.add(i)})
+        if twice:
+            raise UserError(f"{where}: split '{name}' lists frame(s) {twice[:5]} more than once "
+                            f"(each frame at most once per split)")
         out[str(name)] = idx
     return out
+
+
+def _frame_index(value, where: str) -> int:
+    """A frame index: an integer (numpy's too; an integral float is accepted), never true/false or text."""
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        return int(value)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise UserError(f"{where} must hold frame indices (integers), got {_shown(value)}")
+    return int(value)
+
+
+def _shown(value) -> str:
+    """A value for a message, cut to 60 characters."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check_fields(values: Mapping, where: str) -> dict:
+    """meta.yaml's (or NativeMeta's) name, gender, body, fps, poses and extra checked for their type and
+    range; returns them normalised (name a string, fps a float or None, extra a dict). Messages name
+    ``where`` (the file), the key and what was expected."""
+    out = dict(values)
+    name = values.get("name")
+    if isinstance(name, bool) or not isinstance(name, (str, int)):  # `name: 2024` is read as an integer
+        raise UserError(f"{where}: name must be a string, got {_shown(name)}")
+    out["name"] = str(name)
+    gender = values.get("gender")
+    if gender is not None and (not isinstance(gender, str) or gender not in GENDERS):
+        raise UserError(f"{where}: gender must be one of {GENDERS} or null, got {_shown(gender)}")
+    body = values.get("body")
+    if body is not None and (not isinstance(body, str) or not body.strip()):
+        raise UserError(f"{where}: body must be a body spec (a string such as anny:female) or null, "
+                        f"got {_shown(body)}")
+    fps = values.get("fps")
+    if fps is not None:
+        number = None
+        if isinstance(fps, (int, float, np.number)) and not isinstance(fps, (bool, np.bool_)):
+            number = float(fps)
+        elif isinstance(fps, str):  # PyYAML reads 3e1 (no dot) as a string
+            try:
+                number = float(fps)
+            except ValueError:
+                number = None
+        if number is None or not np.isfinite(number) or number <= 0:
+            raise UserError(f"{where}: fps must be a number > 0 (frames per second) or null, got {_shown(fps)}")
+        out["fps"] = number
+    poses = values.get("poses", "given")
+    if not isinstance(poses, str) or poses not in POSE_SOURCES:
+        raise UserError(f"{where}: poses must be one of {POSE_SOURCES}, got {_shown(poses)}")
+    extra = values.get("extra")
+    if extra is not None and not isinstance(extra, Mapping):
+        raise UserError(f"{where}: extra must be a mapping (free-form key: value lines) or null, "
+                        f"got {_shown(extra)}")
+    out["extra"] = dict(extra or {})
+    return out
+
+
+def _positive_int(value, where: str, key: str) -> int:
+    """meta.yaml's width, height or num_frames: an integer >= 1 (an integral float is accepted)."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise UserError(f"{where}: {key} must be an integer >= 1, got {_shown(value)}")
+    return value
 
 
 def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras, params,
@@ -169,6 +243,8 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
     splits = _check_splits(meta.splits, n, "write_native")
     if meta.gender is not None and meta.gender not in GENDERS:
         raise UserError(f"write_native: gender must be one of {GENDERS} or None, got {meta.gender!r}")
+    _check_fields({"name": meta.name, "gender": meta.gender, "body": meta.body, "fps": meta.fps,
+                   "extra": meta.extra}, "write_native")
 
     with output_folder(out_dir, NATIVE_KIND, option="dataset") as tmp:
         size = _write_frames(tmp, images, masks, n, cam_size, f"writing {out_dir.name}", progress)
@@ -269,29 +345,40 @@ def _plain(value):
     return value
 
 
+META_KEYS = ("format", "version", "name", "gender", "body", "fps", "width", "height", "num_frames", "splits",
+             "poses", "extra")
+REQUIRED_KEYS = ("name", "width", "height", "num_frames", "splits")
+
+
 def read_meta(root: Path) -> dict:
+    """``root/meta.yaml``, checked against the schema (module docstring, docs/data.md) before anything
+    else is read: every key's type and range, frame indices in 0..num_frames-1 and each at most once per
+    split. Returns its keys normalised (width, height, num_frames ints; fps a float or None; name a
+    string; splits {name: [int]}; poses and extra filled in). Every problem is a UserError naming the
+    file, the key and what was expected."""
+    from rmavatar.utils.files import read_yaml_file
+
     path = root / "meta.yaml"
-    try:
-        with open(path) as f:
-            doc = yaml.safe_load(f)
-    except FileNotFoundError:
-        raise UserError(f"{path} does not exist") from None
-    except yaml.YAMLError as exc:
-        raise UserError(f"cannot parse {path}: {exc}") from None
+    doc = read_yaml_file(path, "dataset file", mapping=False)
     if not isinstance(doc, dict):
-        raise UserError(f"{path} must hold a mapping")
+        raise UserError(f"{path} must hold a mapping (key: value lines), got {_shown(doc)}")
     if doc.get("format") != FORMAT:
         raise UserError(f"{path}: 'format' must be {FORMAT!r}, got {doc.get('format')!r}")
     if doc.get("version") != VERSION:
         raise UserError(f"{path}: format version {doc.get('version')!r} is not supported (this "
                         f"rmavatar reads version {VERSION})")
-    for key in ("name", "width", "height", "num_frames", "splits"):
+    unknown = sorted(str(k) for k in doc if k not in META_KEYS)
+    if unknown:
+        raise UserError(f"{path}: unknown key(s) {', '.join(unknown)} (known: {', '.join(META_KEYS)}; "
+                        f"free-form notes go under extra:)")
+    for key in REQUIRED_KEYS:
         if key not in doc:
             raise UserError(f"{path} is missing '{key}'")
-    if doc.get("gender") is not None and doc["gender"] not in GENDERS:
-        raise UserError(f"{path}: gender must be one of {GENDERS} or null, got {doc['gender']!r}")
-    if doc.get("poses", "given") not in POSE_SOURCES:
-        raise UserError(f"{path}: poses must be one of {POSE_SOURCES}, got {doc['poses']!r}")
+    doc = _check_fields(doc, str(path))
+    for key in ("width", "height", "num_frames"):
+        doc[key] = _positive_int(doc[key], str(path), key)
+    doc["splits"] = _check_splits(doc["splits"], doc["num_frames"], str(path))
+    doc.setdefault("poses", "given")
     return doc
 
 
@@ -302,9 +389,9 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
         raise UserError(f"the native format takes no options, got {sorted(options)}")
     root = Path(root)
     doc = read_meta(root)
-    n = int(doc["num_frames"])
-    width, height = int(doc["width"]), int(doc["height"])
-    splits = _check_splits(doc["splits"], n, str(root / "meta.yaml"))
+    n = doc["num_frames"]
+    width, height = doc["width"], doc["height"]
+    splits = doc["splits"]
     cam = load_npz(root / "cameras.npz", ("K", "viewmat"))
     try:
         K, V, _ = _stack_cameras({"K": cam["K"], "viewmat": cam["viewmat"]}, n)
@@ -341,11 +428,10 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
                 camera=cameras[i], betas=np.array(betas[i]), global_orient=p["global_orient"][i],
                 body_pose=p["body_pose"][i], transl=p["transl"][i]))
         records[split] = recs
-    fps = doc.get("fps")
-    return Dataset(kind="native", name=str(doc["name"]), root=root, records=records,
+    return Dataset(kind="native", name=doc["name"], root=root, records=records,
                    source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
-                   fps=float(fps) if fps is not None else None, size=size, cache_mb=cache_mb,
-                   poses_estimated=doc.get("poses", "given") == "estimated")
+                   fps=doc.get("fps"), size=size, cache_mb=cache_mb,
+                   poses_estimated=doc["poses"] == "estimated")
 
 
 def _listing(folder: Path) -> set[str]:
@@ -371,6 +457,7 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
     splits: dict[str, list[int]] = {}
     for split in ds.splits:
         splits[split] = []
+        listed: set[int] = set()
         for i in range(ds.num_frames(split)):
             rec = ds._record(split, i)
             key = (str(rec.image), rec.betas.tobytes(), rec.global_orient.tobytes(), rec.body_pose.tobytes(),
@@ -378,7 +465,9 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
             if key not in seen:
                 seen[key] = len(entries)
                 entries.append((split, i))
-            splits[split].append(seen[key])
+            if seen[key] not in listed:  # a frame the source split lists twice is one native frame, once
+                listed.add(seen[key])
+                splits[split].append(seen[key])
     cameras = [ds.camera(s, i) for s, i in entries]
     recs = [ds._record(s, i) for s, i in entries]
     params = {key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}

@@ -14,12 +14,12 @@ import re
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from rmavatar.data.dataset import Dataset, FrameRecord, warn
 from rmavatar.data.io import load_npz
 from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
+from rmavatar.utils.files import read_yaml_file
 
 # subject -> (gender, {split: (start, end inclusive, step)}), the InstantAvatar / peers' standard splits.
 SUBJECTS: dict[str, tuple[str, dict[str, tuple[int, int, int]]]] = {
@@ -48,22 +48,35 @@ def _gender_from_name(name: str) -> str:
 
 def _read_splits_file(path: Path) -> dict[str, list[int]]:
     """splits.yaml: {split: {start, end, step}} (end inclusive) or {split: [frame, ...]}."""
-    try:
-        with open(path) as f:
-            doc = yaml.safe_load(f)
-    except yaml.YAMLError as exc:
-        raise UserError(f"cannot parse {path}: {exc}") from None
-    if not isinstance(doc, dict):
+    doc = read_yaml_file(path, "splits file", mapping=False)
+    if not isinstance(doc, dict) or not doc:
         raise UserError(f"{path} must map split names to {{start, end, step}} or to frame lists")
     out = {}
     for split, value in doc.items():
         if isinstance(value, dict) and {"start", "end"} <= set(value):
-            out[str(split)] = split_frames(int(value["start"]), int(value["end"]), int(value.get("step", 1)))
+            unknown = sorted(map(str, set(value) - {"start", "end", "step"}))
+            if unknown:
+                raise UserError(f"{path}: split '{split}' has unknown key(s) {', '.join(unknown)} "
+                                f"(known: start, end, step)")
+            start, end = (_frame_number(value[k], path, f"{split}.{k}") for k in ("start", "end"))
+            step = _frame_number(value.get("step", 1), path, f"{split}.step")
+            if step < 1:
+                raise UserError(f"{path}: {split}.step: expected an integer >= 1, got {step!r}")
+            out[str(split)] = split_frames(start, end, step)
         elif isinstance(value, list):
-            out[str(split)] = [int(v) for v in value]
+            out[str(split)] = [_frame_number(v, path, f"split '{split}'") for v in value]
         else:
             raise UserError(f"{path}: split '{split}' must be {{start, end, step}} or a list of frames")
     return out
+
+
+def _frame_number(value, path: Path, key: str) -> int:
+    """A frame number from splits.yaml: an integer >= 0 (an integral float is accepted)."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UserError(f"{path}: {key}: expected a frame number (an integer >= 0), got {value!r}")
+    return value
 
 
 def _split_params(root: Path, split: str, frames: list[int]) -> dict[str, np.ndarray]:

@@ -13,11 +13,10 @@ import math
 import os
 import types
 import typing
-from pathlib import Path
 from typing import Any
 
 from rmavatar.utils.errors import UserError
-from rmavatar.utils.files import atomic_path
+from rmavatar.utils.files import atomic_path, read_yaml_file
 
 
 def to_dict(cfg: Any) -> dict:
@@ -106,20 +105,11 @@ def check_fields(cfg: Any, section: str, *, positive: tuple[str, ...] = (), nonn
             raise UserError(f"{name} must be >= 1, got {value!r}")
 
 
-def read_yaml(path: str | os.PathLike) -> dict:
-    """A YAML file's top-level mapping; UserError when it is missing, unreadable or not a mapping."""
-    import yaml
-
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"config file {path} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise UserError(f"config file {path} is not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise UserError(f"config file {path}: expected a mapping at the top level")
-    return data
+def read_yaml(path: str | os.PathLike, what: str = "config file") -> dict:
+    """A user's YAML file's top-level mapping ({} when empty); UserError naming ``what`` and the path when
+    it is missing, a folder, unreadable, not UTF-8, not valid YAML (line and column) or not a mapping
+    (see :func:`rmavatar.utils.files.read_yaml_file`)."""
+    return read_yaml_file(path, what, mapping=True)
 
 
 def write_yaml(cfg: Any, path: str | os.PathLike, header: dict | None = None) -> None:

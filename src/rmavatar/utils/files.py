@@ -9,7 +9,7 @@ import shutil
 import socket
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 from rmavatar.utils.errors import UserError
 
@@ -177,3 +177,127 @@ def atomic_dir(path: str | os.PathLike, *, replace: bool = False) -> Iterator[Pa
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+# ----------------------------------------------------------------------------------------- the user's text files
+# Byte-order marks that say a file is not UTF-8 (UTF-32 first: its little-endian mark starts with UTF-16's).
+_BOMS = ((b"\xff\xfe\x00\x00", "UTF-32 (little-endian)"), (b"\x00\x00\xfe\xff", "UTF-32 (big-endian)"),
+         (b"\xff\xfe", "UTF-16 (little-endian)"), (b"\xfe\xff", "UTF-16 (big-endian)"))
+
+
+def _encoding_hint(data: bytes) -> str | None:
+    """What a file that is not UTF-8 looks like, from its byte-order mark or NUL bytes; None if unknown."""
+    for bom, name in _BOMS:
+        if data.startswith(bom):
+            return name
+    head = data[:4096]
+    if head and head.count(0) * 4 >= len(head):  # ASCII text as UTF-16: every other byte is NUL
+        odd, even = head[1::2].count(0), head[0::2].count(0)
+        if odd > 3 * max(even, 1) or even > 3 * max(odd, 1):
+            return "UTF-16 (no byte-order mark)"
+    return None
+
+
+def read_text_file(path: str | os.PathLike, what: str = "file") -> str:
+    """The text of a user's file (a config, a jobs file, meta.yaml) decoded as UTF-8; a UTF-8 byte-order
+    mark is accepted and dropped. A missing file, a folder, an unreadable file and one that is not UTF-8
+    text (UTF-16 or UTF-32 as saved by some Windows editors, a binary file) are a UserError that starts
+    with ``what`` and the path, e.g. "jobs file x.yaml is UTF-16 (little-endian) text: save it as UTF-8"."""
+    path = Path(path)
+    name = f"{what} {path}"
+    if path.is_dir():
+        raise UserError(f"{name} is a folder, not a file")
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"{name} does not exist") from None
+    except OSError as exc:
+        raise UserError(f"cannot read {name}: {exc.strerror or exc}") from None
+    hint = _encoding_hint(data)
+    if hint:
+        raise UserError(f"{name} is {hint} text, not UTF-8: save it as UTF-8")
+    if b"\x00" in data[:4096]:
+        raise UserError(f"{name} is not a text file (it holds binary data, starting {data[:8]!r})")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise UserError(f"{name} is not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line} cannot be "
+                        f"decoded; it may be Latin-1 or another legacy encoding): save it as UTF-8") from None
+
+
+def _yaml_loader():
+    """PyYAML's safe loader, refusing a key that a mapping gives twice (the first value would be lost)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict = {}
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key = self.construct_object(key_node, deep=True)
+                    try:
+                        first = seen.setdefault(key, key_node.start_mark)
+                    except TypeError:  # an unhashable key: PyYAML's own error follows
+                        continue
+                    if first is not key_node.start_mark:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"the key {key!r} is given twice (first on line {first.line + 1})",
+                            key_node.start_mark)
+            return super().construct_mapping(node, deep=deep)
+
+    return Loader
+
+
+def _yaml_problem(exc: Exception, text: str) -> str:
+    """A PyYAML error as one line: where (line, column) and what."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    parts = [p for p in (getattr(exc, "context", None), getattr(exc, "problem", None)) if p]
+    what = ", ".join(parts) if parts else str(exc).strip().splitlines()[0]
+    if mark is not None:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
+    position = getattr(exc, "position", None)
+    if isinstance(position, int) and getattr(exc, "reason", None):  # a ReaderError: a control character
+        char = text[position] if position < len(text) else ""
+        line = text[:position].count("\n") + 1
+        column = position - (text.rfind("\n", 0, position) + 1) + 1
+        return f"line {line}, column {column}: the character U+{ord(char or chr(0)):04X} is not allowed ({exc.reason})"
+    return what
+
+
+def read_yaml_file(path: str | os.PathLike, what: str = "file", *, mapping: bool = True) -> Any:
+    """A user's YAML file, read with :func:`read_text_file`; every problem is a UserError naming ``what``
+    and the path: invalid YAML (with the line and column), a key given twice in one mapping, and, with
+    ``mapping``, a top level that is not a mapping (an empty file is an empty mapping)."""
+    import yaml
+
+    text = read_text_file(path, what)
+    try:
+        data = yaml.load(text, Loader=_yaml_loader())  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise UserError(f"{what} {path} is not valid YAML: {_yaml_problem(exc, text)}") from None
+    except RecursionError:
+        raise UserError(f"{what} {path} is not valid YAML: it nests too deeply") from None
+    if mapping:
+        if data is None:
+            return {}
+        if not isinstance(data, dict):
+            raise UserError(f"{what} {path}: expected a mapping (key: value lines) at the top level, "
+                            f"got {_kind(data)}")
+    return data
+
+
+def _kind(value: Any) -> str:
+    """'a list', 'a string', ... for messages."""
+    if isinstance(value, bool):
+        return f"true/false ({value!r})"
+    names = {list: "a list", str: "a string", int: "an integer", float: "a number", dict: "a mapping"}
+    for tp, name in names.items():
+        if isinstance(value, tp):
+            if isinstance(value, (list, dict)):
+                return name
+            text = repr(value)
+            return f"{name} ({text[:60]}...)" if len(text) > 60 else f"{name} ({text})"
+    return type(value).__name__
