@@ -236,3 +236,31 @@ def test_unwritable_file_system(target):
     with pytest.raises(UserError, match="cannot write"):
         with frame_writer(target, 10, 16, 16) as write:
             write(np.zeros((16, 16, 3), np.uint8))
+
+
+@pytest.mark.parametrize("fps", ["0", "-5", "nan", "inf"])
+def test_animate_refuses_a_frame_rate_it_cannot_use(tmp_path, capsys, fps):
+    """--fps 0 once wrote a video 'at 30 fps': a given frame rate is checked as given, before any work."""
+    from rmavatar.commands import main
+
+    motion = tmp_path / "m.npz"
+    np.savez(motion, poses=np.zeros((3, 72), np.float32))
+    code = main(["animate", str(tmp_path / "run"), "--motion", str(motion), "--out", str(tmp_path / "a.mp4"),
+                 "--fps", fps])
+    err = capsys.readouterr().err
+    assert code == 2 and "--fps must be a positive number" in err, err
+    assert not (tmp_path / "a.mp4").exists()
+
+
+def test_csv_motion_is_an_unsupported_format(tmp_path):
+    """A CSV is refused for what it is (an unsupported format, with the supported ones listed), not as a
+    file of pickled Python objects."""
+    from rmavatar.body import load_motion
+
+    path = tmp_path / "walk.csv"
+    path.write_text("frame,x,y,z\n0,0.1,0.2,0.3\n")
+    with pytest.raises(UserError) as info:
+        load_motion(path)
+    msg = str(info.value)
+    assert "unsupported format '.csv'" in msg and ".npz" in msg and ".npy" in msg
+    assert "pickle" not in msg

@@ -388,3 +388,88 @@ def test_no_message_recommends_unsafe_loading():
         text = path.read_text()
         for bad in ("allow_pickle=True", "weights_only=False"):
             assert bad not in text, f"{path} mentions {bad}"
+
+
+# ----------------------------------------------------------------------------------------------- the user's text files
+# (issue: nothing lost, item 1) A YAML file saved as UTF-16, invalid YAML, a hand-written meta.yaml with a wrong
+# value: a message naming the file (and the line or key), exit code 2, no traceback. No trained run needed.
+def _utf16(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-16")
+    return path
+
+
+def _meta_edit(t: Path, old: str, new: str, encoding: str = "utf-8") -> str:
+    d = _dataset(t / "hand")
+    meta = d / "meta.yaml"
+    text = meta.read_text()
+    assert old in text
+    meta.write_text(text.replace(old, new), encoding=encoding)
+    return str(d)
+
+
+TEXT_FILE_CASES = [
+    pytest.param(lambda t: ["batch", str(_utf16(t / "jobs.yaml", "jobs:\n  - {name: a, data: d}\n")),
+                            "--out", str(t / "b")],
+                 ["jobs.yaml is UTF-16 (little-endian) text, not UTF-8: save it as UTF-8"], id="batch-utf16-jobs"),
+    pytest.param(lambda t: ["batch", str(yaml_file(t / "jobs.yaml", "jobs:\n  - {name: a, data: d\n")), "--out",
+                            str(t / "b")], ["jobs.yaml is not valid YAML: line 3, column 1"], id="batch-invalid-yaml"),
+    pytest.param(lambda t: ["batch", str(yaml_file(t / "jobs.yaml", "jobs: []\njobs: [{name: a, data: d}]\n")),
+                            "--out", str(t / "b")], ["jobs.yaml is not valid YAML: line 2", "'jobs' is given twice"],
+                 id="batch-key-twice"),
+    pytest.param(lambda t: ["batch", str(t), "--out", str(t / "b")], ["is a folder, not a file"], id="batch-folder"),
+    pytest.param(lambda t: ["train", str(_dataset(t / "d")), "--out", str(t / "run"), "--config",
+                            str(_utf16(t / "c.yaml", "optim:\n  iters: 5\n"))],
+                 ["config file", "c.yaml is UTF-16 (little-endian) text"], id="train-utf16-config"),
+    pytest.param(lambda t: ["train", str(_dataset(t / "d")), "--out", str(t / "run"), "--config",
+                            str(yaml_file(t / "c.yaml", "optim:\n  iters: 5\n   lr: 1\n"))],
+                 ["c.yaml is not valid YAML: line 3, column"], id="train-invalid-yaml"),
+    pytest.param(lambda t: ["train", str(_dataset(t / "d")), "--out", str(t / "run"), "--config",
+                            str(user_file(t / "c.yaml", "just some notes"))],
+                 ["c.yaml: expected a mapping (key: value lines) at the top level, got a string"],
+                 id="train-config-not-a-mapping"),
+    pytest.param(lambda t: ["inspect", _meta_edit(t, "format:", "format:", encoding="utf-16")],
+                 ["meta.yaml is UTF-16 (little-endian) text, not UTF-8: save it as UTF-8"], id="inspect-utf16-meta"),
+    pytest.param(lambda t: ["inspect", _meta_edit(t, "fps: 30.0", "fps: fast")],
+                 ["meta.yaml: fps must be a number > 0 (frames per second) or null, got 'fast'"],
+                 id="inspect-meta-fps-fast"),
+    pytest.param(lambda t: ["inspect", _meta_edit(t, "width: 32", "width: -32")],
+                 ["meta.yaml: width must be an integer >= 1, got -32"], id="inspect-meta-negative-size"),
+    pytest.param(lambda t: ["inspect", _meta_edit(t, "train: [0, 1]", "train: [0, 1, 1]")],
+                 ["meta.yaml: split 'train' lists frame(s) [1] more than once"], id="inspect-meta-frame-twice"),
+    pytest.param(lambda t: ["inspect", _meta_edit(t, "train: [0, 1]", "train: [0, one]")],
+                 ["meta.yaml: split 'train' must hold frame indices (integers), got 'one'"],
+                 id="inspect-meta-frame-not-integer"),
+    pytest.param(lambda t: ["train", _meta_edit(t, "name: tiny", "name: [tiny]"), "--out", str(t / "run")],
+                 ["meta.yaml: name must be a string, got ['tiny']"], id="train-meta-name-list"),
+]
+
+
+@pytest.mark.parametrize("build, needles", TEXT_FILE_CASES)
+def test_users_text_files(build, needles, tmp_path, capsys, monkeypatch):
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path.parent / "outputs-registry.json")
+    monkeypatch.chdir(tmp_path)
+    argv = build(tmp_path)
+    before = _snapshot(tmp_path)
+    got = main(argv)
+    out, err = capsys.readouterr()
+    text = out + err
+    assert got == 2, text
+    for needle in needles:
+        assert needle in text, text
+    assert "Traceback" not in text and "UnicodeDecodeError" not in text and "ValueError" not in text, text
+    assert _snapshot(tmp_path) == before, "a file was written, changed or removed"
+
+
+def test_text_file_given_as_motion_is_not_called_a_pickle(tmp_path):
+    from rmavatar.body.motion import load_motion
+    from rmavatar.utils import UserError
+
+    with pytest.raises(UserError, match=r"m.npz: .*it is not a NumPy .npz or .npy file \(it looks like a text file "
+                                        r"\(it starts 'poses: \[1, 2\]"):
+        load_motion(yaml_file(tmp_path / "m.npz", "poses: [1, 2]\n"))
+    (tmp_path / "e.npy").write_bytes(b"")
+    with pytest.raises(UserError, match=r"e.npy: .*it is not a NumPy .npz or .npy file \(it is empty\)"):
+        load_motion(tmp_path / "e.npy")

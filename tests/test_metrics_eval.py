@@ -186,3 +186,49 @@ def test_bad_input(tiny, tmp_path, capsys):
         evaluate_run(tiny["run"], data=str(broken), out_dir=tmp_path / "imgs", progress=False)
     assert not (tmp_path / "imgs").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "mine"]
+
+
+def test_runs_own_data_is_recognised_by_resolved_path(tmp_path, monkeypatch):
+    """`eval RUN --split train --data DATA/` scores with the run's refined poses, as `--data DATA` does:
+    the dataset specs are compared as resolved paths, never as strings."""
+    from types import SimpleNamespace
+
+    from rmavatar.body import PoseSequence
+    from rmavatar.data.registry import normalize_spec, same_dataset
+    from rmavatar.evaluate.run import _choose_poses, _Evaluation
+
+    data = tmp_path / "DATA"
+    data.mkdir()
+    (data / "meta.yaml").write_text("name: d\n")  # the native layout, for the kind-less specs
+    monkeypatch.chdir(tmp_path)
+    n = 2
+    p = params(n, 1)
+    refined = PoseSequence.from_arrays(p["global_orient"] + 0.1, p["body_pose"], p["transl"])
+    run = SimpleNamespace(training_poses=refined, training_split="train", data_spec=str(data))
+    for spec in ("DATA/", "./DATA", str(data) + "/", f"native:{data}", "sub/../DATA"):
+        (tmp_path / "sub").mkdir(exist_ok=True)
+        ev = _Evaluation(run, SimpleNamespace(root=data), spec, "train", n, n, {**p, "index": np.arange(n)},
+                         torch.device("cpu"), torch.ones(3))
+        poses, source, _ = _choose_poses(ev, None, progress=False)
+        assert source == "refined in training", spec
+        assert torch.allclose(poses.global_orient, refined.global_orient)
+    assert normalize_spec("DATA/") == str(data) and normalize_spec("zju:DATA/?camera=1") == f"zju:{data}?camera=1"
+    assert not same_dataset("DATA?camera=1", "DATA") and not same_dataset("zju:DATA", "native:DATA")
+    (tmp_path / "OTHER").mkdir()
+    ev = _Evaluation(run, SimpleNamespace(root=data), "OTHER", "train", n, n, {**p, "index": np.arange(n)},
+                     torch.device("cpu"), torch.ones(3))
+    assert _choose_poses(ev, None, progress=False)[1] == "the dataset's"
+
+
+def test_options_without_effect_are_refused(tmp_path, capsys):
+    """Contradicting options, options that only matter beside another, and one path named as both
+    outputs are errors before any work (nothing is written)."""
+    run, out = str(tmp_path / "run"), str(tmp_path / "e.json")
+    for extra, why in ((["--images", str(tmp_path / "i"), "--no-images"], "contradict"),
+                       (["--fit-batch", "4"], "--fit-batch only matter with --fit-poses"),
+                       (["--fit-smooth", "0", "--fit-batch", "2"], "--fit-smooth and --fit-batch"),
+                       (["--images", str(tmp_path / "." / "e.json") + "/"], "would hold the --json file"),
+                       (["--images", str(tmp_path)], "would hold the --json file")):
+        assert main(["eval", run, "--json", out, *extra]) == 2
+        assert why in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

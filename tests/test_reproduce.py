@@ -75,3 +75,38 @@ def test_reproduce_paper_on_fixture_datasets(tmp_path):
     assert "3 iterations (the paper: 50,000), evaluated at 32x32 on a white background" in out
     assert "ONLY THE FIRST FRAMES of each test split" in out
     assert (root / "paper_tables.md").read_text().count("| 34.12 |") == 2  # the subject and its mean of 1
+
+
+def test_write_jobs_never_replaces_the_users_file(tmp_path, monkeypatch, capsys):
+    """--write-jobs goes through the output rule: an existing file rmavatar did not write is kept; a
+    jobs file it wrote itself is replaced; options that only matter to a running batch are refused."""
+    from rmavatar.commands import main
+
+    monkeypatch.setenv("RMAVATAR_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ps" / "male-3-casual").mkdir(parents=True)
+    base = ["reproduce", "paper", "--people-snapshot", "ps", "--body", "anny", "--out", "runs/ps",
+            "--tables", "1", "--subjects", "male-3-casual"]
+    notes = tmp_path / "notes.yaml"
+    notes.write_text("my notes\n")
+    assert main([*base, "--write-jobs", "notes.yaml"]) == 2
+    assert "refusing to replace" in capsys.readouterr().err
+    assert notes.read_text() == "my notes\n"
+    # A new file is written, and rmavatar may write it again (it can prove it wrote it).
+    assert main([*base, "--write-jobs", "jobs.yaml"]) == 0
+    assert main([*base, "--iters", "10", "--write-jobs", "jobs.yaml"]) == 0
+    assert len(load_jobs(tmp_path / "jobs.yaml")) == 1
+    capsys.readouterr()
+    # --overwrite replaces the user's file when asked to.
+    assert main([*base, "--write-jobs", "notes.yaml", "--overwrite"]) == 0
+    assert len(load_jobs(notes)) == 1
+    # Options that have no effect with --write-jobs, and numbers out of range, are refused up front.
+    assert main([*base, "--write-jobs", "j2.yaml", "--address", "auto"]) == 2
+    assert "--address has no effect with --write-jobs" in capsys.readouterr().err
+    assert main([*base, "--cpus-per-job", "nan"]) == 2
+    assert "--cpus-per-job" in capsys.readouterr().err
+    assert main([*base, "--write-jobs", "j2.yaml", "--size", "0"]) == 2
+    assert "--size" in capsys.readouterr().err
+    assert main([*base, "--overwrite"]) == 2
+    assert "--overwrite only applies to --write-jobs" in capsys.readouterr().err
+    assert not (tmp_path / "j2.yaml").exists() and not (tmp_path / "runs").exists()

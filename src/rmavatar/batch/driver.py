@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import socket
 import time
@@ -107,15 +108,20 @@ def earlier_result(root: Path, job: Job) -> dict | None:
 
 
 # ----------------------------------------------------------------------------------------------- running
-def run_batch(jobs: list[Job], root: str | os.PathLike, options: BatchOptions | None = None) -> dict:
-    """Run ``jobs`` under ``root``; returns the results document (also written to ROOT/results.*)."""
-    options = options or BatchOptions()
-    if options.cpus_per_job <= 0:
-        raise UserError(f"--cpus-per-job must be > 0, got {options.cpus_per_job}")
-    if options.gpus_per_job is not None and options.gpus_per_job < 0:
-        raise UserError(f"--gpus-per-job must be >= 0, got {options.gpus_per_job}")
+def check_options(options: BatchOptions) -> BatchOptions:
+    """UserError for a value no batch can run with (NaN and infinity included); checked before any work."""
+    if not (math.isfinite(options.cpus_per_job) and options.cpus_per_job > 0):
+        raise UserError(f"--cpus-per-job must be a number > 0, got {options.cpus_per_job}")
+    if options.gpus_per_job is not None and not (math.isfinite(options.gpus_per_job) and options.gpus_per_job >= 0):
+        raise UserError(f"--gpus-per-job must be a number >= 0, got {options.gpus_per_job}")
     if options.max_retries < 0:
         raise UserError(f"--max-retries must be >= 0, got {options.max_retries}")
+    return options
+
+
+def run_batch(jobs: list[Job], root: str | os.PathLike, options: BatchOptions | None = None) -> dict:
+    """Run ``jobs`` under ``root``; returns the results document (also written to ROOT/results.*)."""
+    options = check_options(options or BatchOptions())
     import_ray()  # say what to install before anything is written
     root = Path(root).resolve()
     check_root(root)

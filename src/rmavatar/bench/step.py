@@ -115,11 +115,11 @@ def _stages(trainer, repeats: int, sync) -> dict:
 def _config(data: str, size: int, device: str, threads: int, rectifier, gaussians: int, refine_poses: bool):
     """The TrainConfig the benchmark's steps run with."""
     from rmavatar.train.config import TrainConfig
-    from rmavatar.train.pipeline import normalize_data_spec
+    from rmavatar.data.registry import normalize_spec
 
     cfg = TrainConfig()
     cfg.threads = threads
-    cfg.data.path = normalize_data_spec(data)
+    cfg.data.path = normalize_spec(data)
     cfg.data.size = size
     cfg.device = device
     cfg.model.rectifier = "paper" if rectifier else False  # the design every measurement here was taken with

@@ -45,6 +45,7 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     path = Path(path).expanduser()
     if not path.is_file():
         raise UserError(f"motion file {path} does not exist")
+    _check_magic(path)
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
@@ -103,6 +104,28 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
         betas=betas,
         fps=fps,
     )
+
+
+def _check_magic(path: Path) -> None:
+    """UserError unless ``path`` starts like a .npy, a .npz (zip) or a pickle (which np.load refuses with
+    its own reason): a text file given as a motion would otherwise be called a pickle."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+    except OSError as exc:
+        raise UserError(f"cannot read motion file {path}: {exc.strerror or exc}") from None
+    if head.startswith((b"\x93NUMPY", b"PK\x03\x04", b"PK\x05\x06", b"\x80")):
+        return
+    if not head:
+        why = "it is empty"
+    elif all(b >= 0x20 or b in b"\t\r\n" for b in head[:32].removeprefix(b"\xef\xbb\xbf")):
+        why = f"it looks like a text file (it starts {head[:24].decode('utf-8', 'replace')!r})"
+    else:
+        why = f"it starts {head[:8]!r}"
+    fmt = f"'{path.suffix}' " if path.suffix else ""
+    raise UserError(f"cannot read motion file {path}: unsupported format {fmt}- it is not a NumPy .npz or .npy "
+                    f"file ({why}); supported motion formats: .npz (AIST++, InstantAvatar, AMASS) and .npy "
+                    "(GART) arrays")
 
 
 def _numbers(value, path: Path, key: str) -> np.ndarray:

@@ -47,14 +47,17 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.avatar import load_trained
     from rmavatar.body import load_motion, motion_to_sequence
     background = parse_background(args.bg)
-    # Every option is checked before any slow work (the fps placeholder stands for the motion's rate).
-    VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=args.fps or 30.0).validate()
+    # Every option is checked before any slow work (the fps placeholder stands for the motion's rate). A
+    # given --fps is checked as given: 0 or NaN is an error, never silently replaced by a default.
+    fps_given = args.fps is not None
+    VideoOptions(size=args.size, fov_deg=args.fov, background=background,
+                 fps=args.fps if fps_given else 30.0).validate()
     check_output(args.out, args.overwrite)
     motion = load_motion(args.motion)
     seq = motion_to_sequence(motion, source=str(args.motion))
     step = 1
-    fps = args.fps or motion.fps or 30.0
-    if args.fps and motion.fps and args.fps < motion.fps:
+    fps = args.fps if fps_given else (motion.fps or 30.0)
+    if fps_given and motion.fps and args.fps < motion.fps:
         step = max(1, round(motion.fps / args.fps))
     seq = seq.select(parse_frame_range(args.frames, len(seq), step))
     trained = load_trained(args.run, device=args.device)

@@ -63,6 +63,13 @@ def options_from_args(args: argparse.Namespace):
                         max_retries=args.max_retries, retry_failed=args.retry_failed, progress=not args.quiet)
 
 
+def check_cluster_options(args: argparse.Namespace) -> None:
+    """UserError for a Ray option out of range (NaN included), before any work is done."""
+    from rmavatar.batch.driver import check_options
+
+    check_options(options_from_args(args))
+
+
 def exit_code(doc: dict) -> int:
     """0 when every job finished, 1 when some failed or were lost (the tables say which)."""
     return 0 if all(r["status"] == "ok" for r in doc["jobs"]) else 1
@@ -72,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.batch.driver import run_batch
     from rmavatar.batch.jobs import load_jobs
 
+    check_cluster_options(args)
     jobs = load_jobs(args.jobs)  # every job is validated before anything starts
     doc = run_batch(jobs, args.out, options_from_args(args))
     return exit_code(doc)

@@ -66,6 +66,13 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.evaluate.run import check_images_dir, evaluate_run
 
     out = Path(args.json)
+    # Options that would have no effect are errors, not silently ignored.
+    if args.no_images and args.images:
+        raise UserError("--images and --no-images contradict each other: give one of them")
+    if args.fit_poses is None:
+        unused = [o for o, v, d in (("--fit-smooth", args.fit_smooth, 2), ("--fit-batch", args.fit_batch, 8)) if v != d]
+        if unused:
+            raise UserError(f"{' and '.join(unused)} only matter with --fit-poses: add --fit-poses or leave them out")
     # Fail before the long part, not after it.
     check_output_file(out, option="--json", overwrite=args.overwrite)
     if args.frames is not None and args.frames < 1:
@@ -74,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--size must be at least 32 pixels (LPIPS needs 32x32), got {args.size}")
     images = None if args.no_images else (Path(args.images) if args.images else default_images_dir(out))
     if images is not None:
+        # Compared as resolved paths: '--json out.json --images ./out.json/' names one path twice.
+        if images.resolve() == out.resolve() or images.resolve() in out.resolve().parents:
+            raise UserError(f"--images {images} would hold the --json file {out}: give them different paths")
         check_images_dir(images, args.overwrite)
 
     fit = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from rmavatar.utils import UserError
+from rmavatar.utils.outputs import add_overwrite_argument
 
 EPILOG = """What it runs (RMAvatar §4; docs/batch.md):
   Table 1  PeopleSnapshot male-3-casual, male-4-casual, female-3-casual, female-4-casual: full model,
@@ -50,26 +51,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="score only the first N frames of each test split (a quick look; default: all, "
                         "as the paper)")
     parser.add_argument("--write-jobs", metavar="FILE",
-                        help="only write the batch's JOBS.yaml to FILE (to edit and run with rmavatar batch)")
+                        help="only write the batch's JOBS.yaml to FILE (to edit and run with rmavatar batch); "
+                        "an existing FILE is replaced only when rmavatar wrote it (or with --overwrite)")
     add_cluster_arguments(parser)
+    add_overwrite_argument(parser)
+
+
+# The options that only matter when the batch runs: with --write-jobs they would have no effect.
+RUN_ONLY = (("address", "--address"), ("gpus_per_job", "--gpus-per-job"), ("cpus_per_job", "--cpus-per-job"),
+            ("max_retries", "--max-retries"), ("retry_failed", "--retry-failed"))
+_DEFAULTS = {"address": None, "gpus_per_job": None, "cpus_per_job": 1.0, "max_retries": 2, "retry_failed": False}
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from rmavatar.batch.jobs import parse_jobs, write_jobs_yaml
+    import yaml
+
+    from rmavatar.batch.jobs import parse_jobs
     from rmavatar.batch.paper import PAPER_ITERS, comparison, paper_jobs
-    from rmavatar.commands.batch import exit_code, options_from_args
-    from rmavatar.utils import atomic_path, check_writable_folder
+    from rmavatar.commands.batch import check_cluster_options, exit_code, options_from_args
+    from rmavatar.utils import atomic_path
+    from rmavatar.utils.outputs import check_output_file, output_file
 
     if args.iters is not None and args.iters < 1:
         raise UserError(f"--iters must be >= 1, got {args.iters}")
+    if args.size is not None and args.size < 1:
+        raise UserError(f"--size must be >= 1, got {args.size}")
+    if args.eval_frames is not None and args.eval_frames < 1:
+        raise UserError(f"--eval-frames must be >= 1, got {args.eval_frames}")
+    check_cluster_options(args)
+    if args.overwrite and not args.write_jobs:
+        raise UserError("--overwrite only applies to --write-jobs FILE (a batch folder is continued, never "
+                        "overwritten): leave it out")
+    if args.write_jobs:
+        given = [opt for key, opt in RUN_ONLY if getattr(args, key) != _DEFAULTS.get(key)]
+        if given:
+            it = "it" if len(given) == 1 else "them"
+            raise UserError(f"{', '.join(given)} ha{'s' if len(given) == 1 else 've'} no effect with --write-jobs "
+                            f"(it only writes the jobs file): leave {it} out, or give {it} to rmavatar batch")
+        # Checked before the jobs are made: the user's file is never replaced (see rmavatar.utils.outputs).
+        check_output_file(args.write_jobs, option="--write-jobs", overwrite=args.overwrite,
+                          suffixes=(".yaml", ".yml"))
     doc = paper_jobs(args.people_snapshot, args.zju, args.body, iters=args.iters or PAPER_ITERS,
                      size=args.size, tables=args.tables, subjects=args.subjects, eval_frames=args.eval_frames)
     jobs = parse_jobs(doc, where="the paper's jobs")
     if args.write_jobs:
-        check_writable_folder(Path(args.write_jobs).resolve(), f"--write-jobs {args.write_jobs}")
-        write_jobs_yaml(args.write_jobs, doc)
+        with output_file(args.write_jobs, option="--write-jobs", overwrite=args.overwrite,
+                         suffixes=(".yaml", ".yml")) as tmp:
+            tmp.write_text(yaml.safe_dump(doc, sort_keys=False))
         print(f"wrote {len(jobs)} job(s) to {args.write_jobs}; run them with: rmavatar batch {args.write_jobs} "
               f"--out {args.out}")
         return 0

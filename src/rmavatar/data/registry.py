@@ -6,6 +6,7 @@ layout into a :class:`rmavatar.data.dataset.Dataset`.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from rmavatar.data.dataset import Dataset
@@ -29,6 +30,32 @@ def parse_spec(spec: str) -> tuple[str | None, Path, dict[str, str]]:
             options = {k: v for k, _, v in pairs}
             spec = path_part
     return kind, Path(spec).expanduser(), options
+
+
+def normalize_spec(spec: str | Path) -> str:
+    """The dataset spec with its path made absolute and resolved (``DATA/``, ``./DATA`` and a link to it
+    all become the same string), its kind and options kept: a run remembers its data from any folder."""
+    kind, path, options = parse_spec(str(spec))
+    query = "&".join(f"{k}={v}" for k, v in options.items())
+    return f"{kind + ':' if kind else ''}{path.resolve()}{'?' + query if query else ''}"
+
+
+def same_dataset(a: str | Path | None, b: str | Path | None) -> bool:
+    """True when the specs ``a`` and ``b`` name the same dataset: the same resolved path, the same kind
+    (a missing kind is the one the folder's layout gives) and the same options in any order. Paths are
+    never compared as strings (``DATA/`` is ``DATA``)."""
+    if a is None or b is None:
+        return False
+
+    def key(spec):
+        kind, path, options = parse_spec(str(spec))
+        path = path.resolve()
+        if kind is None:
+            with contextlib.suppress(UserError, OSError):
+                kind = detect_kind(path)
+        return kind, path, sorted(options.items())
+
+    return key(a) == key(b)
 
 
 def detect_kind(path: Path) -> str:

@@ -161,7 +161,10 @@ def _choose_poses(ev: _Evaluation, fit, progress: bool):
     run, params, n = ev.run, ev.params, ev.n
     given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
     poses, pose_source = given, "the dataset's"
-    if run.training_poses is not None and ev.split == run.training_split and ev.spec == run.data_spec:
+    from rmavatar.data.registry import same_dataset
+
+    # The run's own data is recognised by its resolved path ('DATA/', './DATA' and 'DATA' are one dataset).
+    if run.training_poses is not None and ev.split == run.training_split and same_dataset(ev.spec, run.data_spec):
         poses, pose_source = run.training_poses, "refined in training"
     if fit is not None and fit.smooth and pose_source == "the dataset's":
         poses = smooth_poses(poses, params["index"], fit.smooth)  # over the whole split, before the first n

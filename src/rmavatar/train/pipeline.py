@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 from rmavatar.avatar.run import Checkpoint, RunFolder
 from rmavatar.data.checks import check_files
-from rmavatar.data.registry import parse_spec
+from rmavatar.data.registry import normalize_spec, same_dataset
 from rmavatar.train.config import (
     TrainConfig,
     apply_overrides,
@@ -78,7 +78,7 @@ def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | No
         cfg = copy.deepcopy(cfg).validate()
         if not cfg.data.path:
             raise UserError("no dataset given (data.path is empty)")
-        cfg.data.path = normalize_data_spec(cfg.data.path)
+        cfg.data.path = normalize_spec(cfg.data.path)
     # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
     # broken frame leaves nothing behind and is not found hours in.
     dataset = open_dataset(cfg.data)
@@ -94,13 +94,6 @@ def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | No
         if result.interrupted:
             return result
     return Trainer(cfg, run, ckpt, progress, on_iteration, dataset).run()
-
-
-def normalize_data_spec(spec: str) -> str:
-    """The dataset spec with its path made absolute, so a run remembers its data from any folder."""
-    kind, path, options = parse_spec(str(spec))
-    query = "&".join(f"{k}={v}" for k, v in options.items())
-    return f"{kind + ':' if kind else ''}{path.resolve()}{'?' + query if query else ''}"
 
 
 def _start(cfg: TrainConfig, run: RunFolder, resume: bool) -> None:
@@ -140,8 +133,8 @@ def _resume_checkpoint(run: RunFolder, data: str | None) -> Checkpoint:
 
 def _check_resume_data(run: RunFolder, data: str | None, trained_on: str) -> None:
     """``--data`` given with ``--resume`` must name the dataset the run was trained on."""
-    if data is not None and normalize_data_spec(data) != trained_on:
-        raise UserError(f"--resume: {run.path} is a run of {trained_on!r}, not of {normalize_data_spec(data)!r}")
+    if data is not None and not same_dataset(data, trained_on):
+        raise UserError(f"--resume: {run.path} is a run of {trained_on!r}, not of {normalize_spec(data)!r}")
 
 
 def _changeable(key: str) -> bool:

@@ -12,7 +12,10 @@ file is replaced only when its content is still what rmavatar wrote there, or wi
 Copying a file elsewhere or editing it loses the proof, which errs on the side of refusing.
 
 Run folders keep their own marker (``rmavatar-run.json``, see :mod:`rmavatar.avatar.run`): training
-never deletes anything in them, it only refuses folders that are not its runs.
+never deletes anything in them, it only refuses folders that are not its runs. Batch folders (``rmavatar
+batch`` / ``reproduce --out``) likewise keep their own marker (see :mod:`rmavatar.batch.driver`): a
+non-empty folder without it is refused. Every command's output options are walked by
+tests/test_outputs_walk.py, which puts a user's file where each output goes and checks it is kept.
 """
 
 from __future__ import annotations
