@@ -29,6 +29,7 @@ from rmavatar.data.dataset import Dataset, FrameRecord, warn
 from rmavatar.data.io import load_npz, to_uint8, write_png
 from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
+from rmavatar.utils.config import whole_number
 from rmavatar.utils.outputs import check_output_folder, output_folder
 
 NATIVE_KIND = "native-dataset"
@@ -209,11 +210,10 @@ def _check_fields(values: Mapping, where: str) -> dict:
 
 def _positive_int(value, where: str, key: str) -> int:
     """meta.yaml's width, height or num_frames: an integer >= 1 (an integral float is accepted)."""
-    if isinstance(value, float) and value.is_integer():
-        value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    number = whole_number(value, 1)
+    if number is None:
         raise UserError(f"{where}: {key} must be an integer >= 1, got {_shown(value)}")
-    return value
+    return number
 
 
 def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras, params,

@@ -19,6 +19,7 @@ from rmavatar.data.dataset import Dataset, FrameRecord, warn
 from rmavatar.data.io import load_npz
 from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
+from rmavatar.utils.config import whole_number
 from rmavatar.utils.files import read_yaml_file
 
 # subject -> (gender, {split: (start, end inclusive, step)}), the InstantAvatar / peers' standard splits.
@@ -72,11 +73,10 @@ def _read_splits_file(path: Path) -> dict[str, list[int]]:
 
 def _frame_number(value, path: Path, key: str) -> int:
     """A frame number from splits.yaml: an integer >= 0 (an integral float is accepted)."""
-    if isinstance(value, float) and value.is_integer():
-        value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+    number = whole_number(value, 0)
+    if number is None:
         raise UserError(f"{path}: {key}: expected a frame number (an integer >= 0), got {value!r}")
-    return value
+    return number
 
 
 def _split_params(root: Path, split: str, frames: list[int]) -> dict[str, np.ndarray]:

@@ -84,6 +84,16 @@ def from_dict(cls: type, data: dict, where: str = "config") -> Any:
     return cls(**kwargs)
 
 
+def whole_number(value: Any, minimum: int) -> int | None:
+    """``value`` as an int when it is a whole number >= ``minimum`` (an integral float counts, a bool
+    does not) as a user writes one in a YAML file; None otherwise (the caller names what was expected)."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        return None
+    return value
+
+
 def check_fields(cfg: Any, section: str, *, positive: tuple[str, ...] = (), nonnegative: tuple[str, ...] = (),
                  at_least_one: tuple[str, ...] = ()) -> None:
     """UserError unless every number of the config dataclass ``cfg`` is finite and of its field's type, and
