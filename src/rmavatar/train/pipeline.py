@@ -59,6 +59,7 @@ def train(cfg: TrainConfig | None, run_dir: str | Path, *, resume: bool = False,
 
 def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | None, overrides: dict[str, Any],
            progress: bool, on_iteration) -> TrainResult:
+    """:func:`train` with the run's writer lock held."""
     in_first_pass = resume and not run.has_checkpoint() and run.pose_pass.has_checkpoint()
     ckpt = None
     if in_first_pass:  # stopped in the first pass of two: that pass resumes, then the second starts
@@ -79,8 +80,8 @@ def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | No
         if not cfg.data.path:
             raise UserError("no dataset given (data.path is empty)")
         cfg.data.path = normalize_spec(cfg.data.path)
-    # Open the dataset and read every training frame's files before RUN is touched, so a wrong path or a
-    # broken frame leaves nothing behind and is not found hours in.
+    # Open the dataset and read every training frame's files before anything is written to RUN (only its
+    # lock is held), so a wrong path or a broken frame leaves nothing behind and is not found hours in.
     dataset = open_dataset(cfg.data)
     check_files(dataset, [cfg.data.split], progress=progress)
     first, first_ckpt = (None, None) if ckpt is not None else first_pass_config(cfg, run, dataset.poses_estimated)
