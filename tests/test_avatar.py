@@ -658,3 +658,16 @@ def test_face_table_columns_are_named_by_face_table():
     torch.testing.assert_close(table[:, FaceTable.wR].reshape(-1, 3, 3), w[:, None, None] * R, rtol=0, atol=0)
     assert torch.equal(table[:, FaceTable.M], M) and torch.equal(table[:, FaceTable.w], w.unsqueeze(-1))
     assert torch.equal(table[:, FaceTable.L].reshape(-1, 4, 4), quat_left_matrix(rotmat_to_quat(R)))
+
+
+def test_encoding_window_is_read_from_the_alpha_buffer_on_the_device():
+    # The window is computed from the freq_alpha buffer at each forward (a captured CUDA graph replays
+    # it), so filling the buffer in place changes it; it equals the host formula at any alpha.
+    from rmavatar.avatar.rectifier import window_values
+
+    r = Rectifier()
+    x = torch.randn(7, 3, generator=torch.Generator().manual_seed(1))
+    for alpha in (0.3, 1.7, 4.99):
+        r.freq_alpha.fill_(alpha)
+        want = torch.tensor(window_values(6, alpha), dtype=torch.float32).repeat_interleave(3).repeat(2)
+        torch.testing.assert_close(r._band_weights(x), want, rtol=0, atol=1e-6)

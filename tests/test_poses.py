@@ -159,7 +159,7 @@ def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
     with pytest.raises(UserError, match="poses.refine"):
         load_config(tmp_path / "bad.yaml")
     save_config(cfg, tmp_path / "new.yaml")  # written stamped: read back as it is, also as a run's own
-    assert (tmp_path / "new.yaml").read_text().startswith("version: 5\n")
+    assert (tmp_path / "new.yaml").read_text().startswith("version: 6\n")
     assert to_dict(load_config(tmp_path / "new.yaml", as_trained=True)) == to_dict(cfg)
 
 

@@ -225,9 +225,9 @@ def test_sigkill_loses_at_most_the_steps_since_the_last_checkpoint(data, tmp_pat
 
 
 def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
-    import rmavatar.train.trainer as trainer  # the step calls the loss through the trainer's name for it
+    import rmavatar.train.graphs as graphs  # the step calls the loss through StepGraphs, by this name
 
-    original = trainer.total_loss
+    original = graphs.total_loss
     calls = {"n": 0}
 
     def poisoned(render, target, extras, weights=None, **kw):
@@ -239,7 +239,7 @@ def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
             render.register_hook(lambda g: torch.full_like(g, float("nan")))
         return loss, parts
 
-    monkeypatch.setattr(trainer, "total_loss", poisoned)
+    monkeypatch.setattr(graphs, "total_loss", poisoned)
     result = train(_cfg(data, 5), tmp_path / "run", progress=False)
     assert result.iteration == 5
     state = _params(tmp_path / "run")
@@ -249,15 +249,15 @@ def test_nan_loss_and_gradient_are_skipped(data, tmp_path, monkeypatch):
 
 
 def test_repeated_nan_stops_with_a_clear_message_and_an_intact_model(data, tmp_path, monkeypatch):
-    import rmavatar.train.trainer as trainer  # the step calls the loss through the trainer's name for it
+    import rmavatar.train.graphs as graphs  # the step calls the loss through StepGraphs, by this name
 
-    original = trainer.total_loss
+    original = graphs.total_loss
 
     def always_nan(*a, **kw):
         loss, parts = original(*a, **kw)
         return loss * float("nan"), parts
 
-    monkeypatch.setattr(trainer, "total_loss", always_nan)
+    monkeypatch.setattr(graphs, "total_loss", always_nan)
     # The guard stays on the device and is read at each progress report (every 4 iterations here).
     cfg = _cfg(data, 50, max_bad_steps=3, progress_every=4)
     with pytest.raises(UserError, match="iteration 4: 4 consecutive steps .*max_bad_steps is 3"):

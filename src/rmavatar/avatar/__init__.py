@@ -15,7 +15,7 @@ from rmavatar.avatar.model import (
     AvatarExtras,
     area_counts,
 )
-from rmavatar.avatar.frame import RenderedFrame, render_frame
+from rmavatar.avatar.frame import RenderedFrame, pose_frame, render_frame
 from rmavatar.avatar.rectifier import Rectifier, positional_encoding, window_alpha
 from rmavatar.avatar.trained import TrainedAvatar, load_trained
 
@@ -30,6 +30,7 @@ __all__ = [
     "TrainedAvatar",
     "area_counts",
     "load_trained",
+    "pose_frame",
     "positional_encoding",
     "quat_multiply",
     "render_frame",

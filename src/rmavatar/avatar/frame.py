@@ -27,6 +27,16 @@ class RenderedFrame:
     colors: torch.Tensor | None  # [N,3] the view-dependent colours, when held (``hold_colors``) or given
 
 
+def pose_frame(avatar: Avatar, vertices: torch.Tensor | None, body_pose: torch.Tensor | None,
+               viewmat: torch.Tensor | None, *, table: torch.Tensor | None = None,
+               rectified: tuple | None = None) -> tuple[GaussianSet, AvatarExtras, torch.Tensor | None]:
+    """The first half of :func:`render_frame`: (world-space Gaussians, extras, view-dependent colours
+    [N,3] seen from ``viewmat`` [4,4] on the Gaussians' device and dtype; None without ``viewmat``).
+    Only tensor operations, no host reads: a training step replays it as a CUDA graph."""
+    gs, extras = avatar.forward_with_extras(vertices, body_pose, rectified=rectified, table=table)
+    return gs, extras, None if viewmat is None else gs.colors(viewmat)
+
+
 def render_frame(avatar: Avatar, vertices: torch.Tensor | None, body_pose: torch.Tensor | None, camera: Any,
                  background: torch.Tensor | None, *, table: torch.Tensor | None = None,
                  rectified: tuple | None = None, colors: torch.Tensor | None = None,
@@ -40,7 +50,7 @@ def render_frame(avatar: Avatar, vertices: torch.Tensor | None, body_pose: torch
     without gradient (returned in ``colors``, for the caller to hold; test-time pose fitting does);
     check: as :func:`rmavatar.render.rasterize`'s (False in training, whose guard stays on the device).
     Differentiable; wrap in ``torch.no_grad()`` to only look."""
-    gs, extras = avatar.forward_with_extras(vertices, body_pose, rectified=rectified, table=table)
+    gs, extras, _ = pose_frame(avatar, vertices, body_pose, None, table=table, rectified=rectified)
     if colors is None and hold_colors:
         with torch.no_grad():
             colors = gs.colors(torch.as_tensor(camera.viewmat).to(gs.means))

@@ -210,17 +210,18 @@ class Rectifier(nn.Module):
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         alpha = host_scalar(self, "freq_alpha")
-        return _Encoding.apply(x, self.num_freqs, None if alpha >= self.num_freqs else self._band_weights(alpha, x))
+        return _Encoding.apply(x, self.num_freqs, None if alpha >= self.num_freqs else self._band_weights(x))
 
-    def _band_weights(self, alpha: float, x: torch.Tensor) -> torch.Tensor:
-        """The window as per-column weights of gamma [6 num_freqs], made on the host and uploaded once
-        per window position (each step while it opens), not computed by a chain of tensor operations."""
-        key = (alpha, x.dtype, x.device)
-        cached = self.__dict__.get("_band_cache")
-        if cached is None or cached[0] != key:
-            values = [v for v in window_values(self.num_freqs, alpha) for _ in range(x.shape[-1])]
-            cached = self._band_cache = (key, torch.tensor(values * 2, dtype=x.dtype, device=x.device))
-        return cached[1]
+    def _band_weights(self, x: torch.Tensor) -> torch.Tensor:
+        """The window as per-column weights of gamma [6 num_freqs], computed on the device from the
+        ``freq_alpha`` buffer (:func:`window_values` written as tensor operations): a captured step (a
+        CUDA graph) reads the window of each replay from that buffer, which the trainer fills in place."""
+        k = constant(tuple(float(i) for i in range(self.num_freqs)), x.dtype, x.device)
+        t = (self.freq_alpha.to(x.dtype) - k).clamp(0.0, 1.0)
+        bands = 0.5 - 0.5 * torch.cos(t * math.pi)  # [F]
+        column_band = constant(tuple(f for _ in range(2) for f in range(self.num_freqs) for _ in range(x.shape[-1])),
+                               torch.long, x.device)
+        return bands[column_band]
 
     def _pose_rows(self, x, body_pose, pose_masks, group) -> torch.Tensor:
         """The pose input as rows [U,69], one per mask group ([1,69] without masks)."""
@@ -323,7 +324,7 @@ class RectifierDesign(Rectifier):
         x = self._reference_position(avatar, R, w, M)
         pose = self._reference_pose(avatar, body_pose.reshape(1, self.pose_dim).to(x.dtype))  # [N,69]
         alpha = host_scalar(self, "freq_alpha")
-        window = None if alpha >= self.num_freqs else self._band_weights(alpha, x)
+        window = None if alpha >= self.num_freqs else self._band_weights(x)
         out = _FusedMLP.reference(_Encoding.reference(x, self.num_freqs, window), pose, None, *self._weights())
         return self.world_offsets(out.split(OUT_WIDTHS, dim=1), w[:, None, None] * R, w.unsqueeze(-1))
 

@@ -39,7 +39,7 @@ LOCK = ".rmavatar-run.lock"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # The version of the checkpoint and of the training config's layout, raised together (the history is
 # in MIGRATIONS below).
-CHECKPOINT_VERSION = 5
+CHECKPOINT_VERSION = 6
 
 
 class RunFolder:
@@ -235,6 +235,15 @@ def _config_v4(config: dict, as_trained: bool) -> dict:
     return out
 
 
+def _config_v5(config: dict, as_trained: bool) -> dict:
+    """Version 5's config had no ``loss.lpips_region``: LPIPS was on the whole frame. ``as_trained``: a
+    run's own config, which keeps that ("frame"); otherwise today's default stays."""
+    if not as_trained:
+        return config
+    loss = config.get("loss")
+    return {**config, "loss": {"lpips_region": "frame", **(loss if isinstance(loss, dict) else {})}}
+
+
 def _v1(payload: dict) -> dict:
     """Version 1 (rmavatar 0.1.0): the avatar's config carried the run's seed (for area placement, which
     a stored avatar no longer needs); the training config's "model" section was a subset of the avatar's
@@ -269,7 +278,12 @@ def _v4(payload: dict) -> dict:
     return {**payload, "config": _config_v4(payload["config"], as_trained=True)}
 
 
-MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4}  # version -> the step to version + 1
+def _v5(payload: dict) -> dict:
+    """Version 5: LPIPS was taken on the whole frame (no ``loss.lpips_region``)."""
+    return {**payload, "config": _config_v5(payload["config"], as_trained=True)}
+
+
+MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5}  # version -> the step to version + 1
 
 
 def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
@@ -277,7 +291,8 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
     unknown (a hand-written file, or RUN/config.yaml written before configs were stamped): read as the
     oldest layout whose keys it has (version 2's rectifier switch, version 4's pose settings in "optim"),
     as version 4 when ``as_trained`` (a run's own file), else as today's. ``as_trained``: settings newer
-    than the file take the value that reproduces how its run was trained."""
+    than the file take the value that reproduces how its run was trained (version 5's: LPIPS on the
+    whole frame)."""
     if version is None:
         switch = (config.get("model") or {}).get("rectifier") is True
         old = any(k in (config.get("optim") or {}) for k in (*POSE_KEYS_V4, "pose_refit_lr"))
@@ -285,8 +300,10 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
     if version <= 2:
         config, version = _config_v2(config), 4  # version 3's config is version 4's
     if version == 4:
-        config = _config_v4(config, as_trained)
-    elif version != CHECKPOINT_VERSION:
+        config, version = _config_v4(config, as_trained), 5
+    if version == 5:
+        config, version = _config_v5(config, as_trained), 6
+    if version != CHECKPOINT_VERSION:
         raise UserError(f"config layout version {version}; this rmavatar reads versions up to "
                         f"{CHECKPOINT_VERSION} (a newer rmavatar wrote it)")
     return config

@@ -8,7 +8,7 @@ Everything that uses a trained avatar (eval, animate, render, export, view, benc
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -19,6 +19,7 @@ from rmavatar.avatar.run import RunFolder, check_body, training_betas
 from rmavatar.body import PoseSequence, apply_pose_corrections, load_body_model, posed_vertices, rest_pose
 from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.utils import UserError
+from rmavatar.utils.graphs import Replay
 
 
 # ----------------------------------------------------------------------------------------------- the avatar
@@ -43,6 +44,8 @@ class TrainedAvatar:
     config: dict
     betas_error: str | None = None  # why the shape could not be read (raised when posing needs it)
     training_poses: PoseSequence | None = None
+    _poser: Replay | None = field(default=None, repr=False)  # pose()'s replayed graph, made at its first call
+    _checked: PoseSequence | None = field(default=None, repr=False)  # the sequence pose() last checked
 
     @property
     def training_split(self) -> str:
@@ -93,10 +96,29 @@ class TrainedAvatar:
         (every stored SH band)."""
         return self.avatar.world_gaussians(vertices.to(self.device), body_pose.reshape(69).to(self.device))
 
-    def pose(self, poses: PoseSequence, i: int) -> GaussianSet:
-        """The GaussianSet of frame ``i`` of ``poses``."""
-        one = poses.select(slice(i, i + 1))
-        return self.gaussians(self.vertices(one)[0], one.body_pose[0])
+    def pose(self, poses: PoseSequence, i: int, keep: bool = True) -> GaussianSet:
+        """The GaussianSet of frame ``i`` of ``poses``: body, mesh embedding and rectifier, replayed as one
+        CUDA graph on a GPU. ``keep=False``: the tensors are the graph's output buffers, valid until the
+        next call (a render loop that draws each frame at once saves their copies)."""
+        if self._checked is not poses:  # checked once per sequence: the graph itself reads nothing back
+            for name in ("global_orient", "body_pose", "transl"):
+                if not bool(torch.isfinite(getattr(poses, name)).all()):
+                    raise UserError(f"the poses' {name} contains NaN or infinite values")
+            self._checked = poses
+        one = poses.select(slice(i, i + 1)).to(self.device)
+        shape = self._shape()
+        if self._poser is None:
+            self._poser = Replay(self._pose_one)
+        out = self._poser(one.global_orient, one.body_pose, one.transl, *(() if shape is None else (shape,)))
+        means, quats, scales, opacities, sh, *frames = (t.clone() for t in out) if keep else out
+        return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh,
+                           sh_degree=self.avatar.config.sh_degree, frames=frames[0] if frames else None)
+
+    def _pose_one(self, global_orient, body_pose, transl, betas=None) -> tuple[torch.Tensor, ...]:
+        """:meth:`pose` as a function of tensors ([1,3], [1,69], [1,3], [1,nb]) for :class:`Replay`."""
+        vertices = self.body(betas, global_orient, body_pose, transl, check_values=False).vertices.float()[0]
+        gs = self.avatar.world_gaussians(vertices, body_pose.reshape(69))
+        return (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh) + (() if gs.frames is None else (gs.frames,))
 
     @torch.no_grad()
     def render(self, gs: GaussianSet, camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:

@@ -1,7 +1,7 @@
 """``rmavatar bench step``: time of one training iteration, and where it goes.
 
 The full step is the trainer's own ``step()`` (target fetch, avatar, rasterizer, all losses, backward,
-NaN guards, Adam, density statistics), timed as the median over repeats after warm-up, on a small
+NaN guards, Adam, density statistics; on CUDA the posing and the losses replayed as CUDA graphs), timed as the median over repeats after warm-up, on a small
 synthetic subject (``rmavatar synth``) at the chosen size, or on a dataset you name. Density control
 is left out (it runs once per few hundred steps; its cost is reported separately, once).
 
@@ -52,7 +52,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
     verts = verts.detach()  # the stages are timed again and again: not through a refined pose's graph
     bg = background_color(cfg.background, trainer.bg_generator, dev)
     target = trainer.frames.target(i, bg)  # what a step uses: the cached target, face table, LPIPS features
-    units = trainer.frames.lpips_units(i, bg)
+    units, window = trainer.frames.lpips_units(i, bg), trainer.frames.lpips_window(i)
     out = {}
 
     with torch.no_grad():
@@ -95,7 +95,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
     extras_leaf = type(extras)(local_means=av.means, local_log_scales=av.log_scales, offsets=offsets)
 
     def losses():
-        loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units)
+        loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units, lpips_window=window)
         loss.backward()
 
     out["losses"] = median_time(losses, repeats, sync)
@@ -112,7 +112,8 @@ def _stages(trainer, repeats: int, sync) -> dict:
     return out
 
 
-def _config(data: str, size: int, device: str, threads: int, rectifier, gaussians: int, refine_poses: bool):
+def _config(data: str, size: int, device: str, threads: int, rectifier, gaussians: int, refine_poses: bool,
+            cuda_graphs: bool = True):
     """The TrainConfig the benchmark's steps run with."""
     from rmavatar.train.config import TrainConfig
     from rmavatar.data.registry import normalize_spec
@@ -122,6 +123,7 @@ def _config(data: str, size: int, device: str, threads: int, rectifier, gaussian
     cfg.data.path = normalize_spec(data)
     cfg.data.size = size
     cfg.device = device
+    cfg.cuda_graphs = cuda_graphs
     cfg.model.rectifier = "paper" if rectifier else False  # the design every measurement here was taken with
     if refine_poses:  # every timed step past the warm-up: the body posed with gradients (a first pass's)
         cfg.poses.refine, cfg.poses.warmup, cfg.poses.first_pass = True, 0.0, 0.0
@@ -142,6 +144,43 @@ def count_step_ops(one_step, steps: int) -> dict:
     return {"steps": steps, **counter.summary(steps)}
 
 
+def count_graphed_ops(trainer) -> dict:
+    """Tensor operations per step inside the two pieces a CUDA step replays as graphs (``StepGraphs``):
+    posing (``pose_frame``) and the losses (``total_loss``), each forward and backward, counted on frame
+    0's inputs. On a GPU these launch as two graph replays each (forward, backward); the rest of a step's
+    operations launch one by one."""
+    import torch
+
+    from rmavatar.avatar.frame import pose_frame
+    from rmavatar.bench.counting import OpCounter
+    from rmavatar.render import rasterize
+    from rmavatar.train.frames import background_color
+    from rmavatar.train.losses import total_loss
+
+    av, cfg, i = trainer.avatar, trainer.cfg, 0
+    vertices, body_pose, table = trainer.frame_body(i, trainer.iteration)
+    cam = trainer.frames.cameras[i]
+    bg = background_color(cfg.background, trainer.bg_generator, trainer.device)
+    target, units = trainer.frames.target(i, bg), trainer.frames.lpips_units(i, bg)
+    window = trainer.frames.lpips_window(i)
+    params = [p for p in av.parameters() if p.requires_grad]
+    with OpCounter() as posing:
+        gs, extras, colors = pose_frame(av, vertices.detach(), body_pose.detach(), cam.viewmat, table=table)
+        outs = (gs.means, gs.quats, gs.scales, gs.opacities, colors, *(extras.offsets or ()))
+        torch.autograd.grad(outs, params, [torch.ones_like(o) for o in outs], allow_unused=True)
+    with torch.no_grad():
+        image, _, _ = rasterize(*(t.detach() for t in outs[:5]), cam.viewmat, cam.K, cam.width, cam.height,
+                                background=bg, check=False)
+    image.requires_grad_(True)
+    offsets = None if extras.offsets is None else tuple(o.detach().requires_grad_(True) for o in extras.offsets)
+    with OpCounter() as losses:
+        loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets), cfg.loss,
+                             lpips_units=units, lpips_window=window)
+        loss.backward()
+    av.zero_grad(set_to_none=True)
+    return {"posing": posing.ops, "losses": losses.ops}
+
+
 def device_info(device) -> dict:
     """The torch device as text and, on CUDA, the GPU's name."""
     import torch
@@ -155,7 +194,7 @@ def device_info(device) -> dict:
 
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
             gaussians: int | None, rectifier: bool, prepare=None, count_steps: int = 20,
-            refine_poses: bool = False) -> dict:
+            refine_poses: bool = False, cuda_graphs: bool = True) -> dict:
     """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
 
     ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
@@ -166,7 +205,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
 
     from rmavatar.train.trainer import Trainer
 
-    cfg = _config(data, size, device, threads, rectifier, gaussians, refine_poses)
+    cfg = _config(data, size, device, threads, rectifier, gaussians, refine_poses, cuda_graphs)
     with tempfile.TemporaryDirectory() as run:
         trainer = Trainer(cfg, Path(run), progress=False)
         t0 = time.perf_counter()
@@ -194,10 +233,14 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
                 one_step()
         times = clock.wall
         counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
+        if counts is not None:
+            counts["in_cuda_graphs"] = count_graphed_ops(trainer)
         skipped = int((~torch.stack(oks)).sum())
         if skipped:
             raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
+        graphs = {"used": trainer.graphs.enabled, "captures": trainer.graphs.captures,
+                  "capture_s": trainer.graphs.capture_s, "off_reason": trainer.graphs.off_reason}
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.
         t0 = time.perf_counter()
@@ -215,6 +258,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         "threads": threads,
         "rectifier": rectifier,
         "refine_poses": refine_poses,
+        "cuda_graphs": graphs,
         "step_median_s": step,
         "step_min_s": min(times),
         "step_max_s": max(times),
@@ -250,7 +294,8 @@ def run(args: argparse.Namespace) -> int:
         if data is None:
             data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
-                      not args.no_rectifier, count_steps=args.count_steps, refine_poses=args.refine_poses)
+                      not args.no_rectifier, count_steps=args.count_steps, refine_poses=args.refine_poses,
+                      cuda_graphs=not args.no_cuda_graphs)
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg())}
     gpu = f" ({res['gpu']})" if "gpu" in res else ""
@@ -258,6 +303,10 @@ def run(args: argparse.Namespace) -> int:
           f"{res['threads']} threads:")
     print(f"  median {res['step_median_s']:.3f} s wall, {res['step_median_cpu_s']:.3f} s CPU (min {res['step_min_s']:.3f}, "
           f"max {res['step_max_s']:.3f}; target <= {res['target_s']} s)  {res['iterations_per_s']:.2f} it/s")
+    g = res["cuda_graphs"]
+    how = (f"replayed as CUDA graphs ({g['captures']} captured in {g['capture_s']:.2f} s)" if g["used"]
+           else f"eager ({g['off_reason']})")
+    print(f"  posing and losses {how}; the stages below are each run eagerly")
     print(f"  {'stage':<22} {'wall s':>8} {'CPU s':>8}")
     for k, v in [*res["stages"].items(), ("other", res["other"])]:
         note = "  (cached up front: 0 per step)" if k == "body_forward" else ""
@@ -266,8 +315,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"  density control pass   {res['density_control_once_s']:.3f} s (once per interval)")
     c = res["counts"]
     if c:
-        print(f"  per step (mean of {c['steps']} steps): {c['ops_per_step']:.0f} tensor operations, "
+        print(f"  per step (mean of {c['steps']} steps): {c['ops_per_step']:.0f} tensor operations launched from Python (a graph replay counts none), "
               f"{c['syncs_per_step']:.2f} host syncs ({c['views_per_step']:.0f} views not counted)")
+        if not res["cuda_graphs"]["used"]:
+            g = c["in_cuda_graphs"]
+            print(f"  of these, in the pieces a CUDA step replays as graphs: posing {g['posing']}, losses "
+                  f"{g['losses']} (forward + backward); about {c['ops_per_step'] - g['posing'] - g['losses']:.0f} "
+                  "launch one by one")
         if c["syncs_by_op"]:
             print(f"  syncs by operation ({c['steps']} steps): "
                   + ", ".join(f"{k} {v}" for k, v in c["syncs_by_op"].items()))

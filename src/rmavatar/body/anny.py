@@ -44,6 +44,7 @@ from rmavatar.body.base import (
 )
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
 from rmavatar.utils import UserError, atomic_path, cache_dir
+from rmavatar.utils.device import constant
 
 ANNY_VERSION = "0.6.2"
 TEMPLATE_VERSION = 1
@@ -290,7 +291,7 @@ class AnnyBody(BodyModel):
         local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], 1).reshape(-1, 24, 3))
         G_smpl = global_rotations(local, SMPL_PARENTS)
         G = G_smpl[:, self.source_joint] @ self.rest_correction  # world rotation of each Anny bone
-        parents = torch.tensor([0] + self.bone_parents[1:], device=G.device)
+        parents = constant((0, *self.bone_parents[1:]), torch.long, G.device)
         L = G[:, parents].transpose(-1, -2) @ G
         return torch.cat([G[:, :1], L[:, 1:]], 1)
 

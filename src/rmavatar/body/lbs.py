@@ -11,6 +11,8 @@ from typing import Sequence
 
 import torch
 
+from rmavatar.utils.device import constant
+
 
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula. ``rotvec [..., 3]`` axis-angle (radians) -> ``[..., 3, 3]``.
@@ -31,7 +33,7 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=16)
-def _levels(parents: tuple[int, ...]) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
+def _levels(parents: tuple[int, ...], device: torch.device) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
     """Joints grouped by depth: per level (after the root) the joint ids and their parents' positions
     within the previous level, and the permutation from depth order back to joint order."""
     children: list[list[int]] = [[] for _ in parents]
@@ -50,16 +52,18 @@ def _levels(parents: tuple[int, ...]) -> tuple[list[torch.Tensor], list[torch.Te
         level = nxt
     if len(order) != len(parents):
         raise ValueError("every joint must descend from joint 0")
-    return ids, parent_pos, torch.argsort(torch.tensor(order))
+    # made once per device: a chain posed every frame (or replayed in a CUDA graph) uploads nothing
+    return ([t.to(device) for t in ids], [t.to(device) for t in parent_pos],
+            torch.argsort(torch.tensor(order)).to(device))
 
 
 def _chain(K: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
     """``X_c = X_parent @ K_c`` down the tree, one batched product per depth level. ``K [B,J,n,n]``."""
-    ids, parent_pos, inverse = _levels(tuple(int(p) for p in parents))
+    ids, parent_pos, inverse = _levels(tuple(int(p) for p in parents), K.device)
     X = [K[:, :1]]
     for level_ids, pos in zip(ids, parent_pos):
-        X.append(X[-1][:, pos.to(K.device)] @ K[:, level_ids.to(K.device)])
-    return torch.cat(X, 1)[:, inverse.to(K.device)]
+        X.append(X[-1][:, pos] @ K[:, level_ids])
+    return torch.cat(X, 1)[:, inverse]
 
 
 def global_rotations(local: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
@@ -95,7 +99,7 @@ def lbs(
     rest_joints = rest_joints.expand(B, -1, -1)
     # Rigid chain W_c = W_parent [L_c | h_c - h_parent] gives W_c = [G_c | posed joint c]: the chain
     # SMPL and Anny's local-ref parameterisation share.
-    parent_idx = torch.tensor([0] + [int(p) for p in parents[1:]], device=rest_joints.device)
+    parent_idx = constant((0, *(int(p) for p in parents[1:])), torch.long, rest_joints.device)
     offsets = torch.cat([rest_joints[:, :1], rest_joints[:, 1:] - rest_joints[:, parent_idx[1:]]], 1)
     bottom = torch.zeros(B, J, 1, 4, dtype=rotations.dtype, device=rotations.device)
     bottom[..., 0, 3] = 1.0

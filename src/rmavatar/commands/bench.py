@@ -19,6 +19,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "step": ("rmavatar.bench.step", "training iteration time at 256x256 (~25k Gaussians) and its breakdown by stage"),
     "speed": ("rmavatar.bench.speed", "rasterizer, training step and rendering speed, each as time and as a ratio to a reference path"),
     "avatar": ("rmavatar.bench.avatar", "the avatar's forward+backward (posing + rectifier): float32, bfloat16, no rectifier"),
+    "render": ("rmavatar.bench.render", "frames per second of a trained avatar (posing + rectifier as one CUDA "
+               "graph on a GPU) and the split by stage"),
 }
 
 
@@ -38,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     # The options every benchmark shares, checked before any measuring.
     if getattr(args, "json", None):
         check_output_file(args.json, option="--json", overwrite=args.overwrite)
-    for name in ("threads", "gaussians", "avatar_gaussians", "repeats", "steps", "iters", "warmup"):
+    for name in ("threads", "gaussians", "avatar_gaussians", "repeats", "steps", "iters", "warmup", "frames"):
         value = getattr(args, name, None)
         least = 0 if name in ("threads", "warmup") else 1
         if value is not None and value < least:
@@ -113,6 +115,8 @@ def _step_options(parser: argparse.ArgumentParser) -> None:
                              "per step (default 20; 0 = skip)")
     parser.add_argument("--refine-poses", action="store_true",
                         help="time steps with pose refinement (the body posed with gradients every step)")
+    parser.add_argument("--no-cuda-graphs", action="store_true",
+                        help="on CUDA, run the step eagerly (the reference for the replayed CUDA graphs)")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
 
 
@@ -151,5 +155,17 @@ def _avatar_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--body", default=None, help="body model spec (e.g. anny); default: an icosphere mesh")
 
 
+def _render_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", metavar="RUN", help="a trained run folder (rmavatar train --out)")
+    parser.add_argument("--size", type=int, default=1080, help="square image size in pixels (default 1080)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
+    parser.add_argument("--frames", type=int, default=60, help="timed frames per path (default 60)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed frames first (default 5)")
+    parser.add_argument("--motion", metavar="FILE", help="poses to cycle through (default: the run's training poses)")
+    parser.add_argument("--no-cuda-graphs", action="store_true",
+                        help="on CUDA, pose eagerly (the reference for the replayed CUDA graph)")
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+
+
 _OPTIONS = {"raster": _raster_options, "quality": _quality_options, "step": _step_options, "speed": _speed_options,
-            "avatar": _avatar_options}
+            "avatar": _avatar_options, "render": _render_options}

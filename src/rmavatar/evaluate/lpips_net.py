@@ -46,6 +46,9 @@ class LPIPSAlex(nn.Module):
     """LPIPS v0.1 distance with the AlexNet backbone; frozen, in eval mode.
 
     ``forward(x [B,3,H,W], y [B,3,H,W]) -> [B]`` with x, y in [0, 1]. Differentiable w.r.t. x and y.
+    ``forward(..., frame=(FH, FW))``: x and y are a window of a larger FH x FW image, and each layer's
+    distances are averaged over that image's feature pixels, not the window's: the whole image's LPIPS
+    with nothing counted outside the window.
     """
 
     def __init__(self) -> None:
@@ -72,14 +75,18 @@ class LPIPSAlex(nn.Module):
                 x = F.max_pool2d(x, kernel_size=3, stride=2)
         return taps
 
-    def head_weights(self, taps: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def head_weights(self, taps: list[torch.Tensor],
+                     frame: tuple[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The five heads' weights in one vector [sum of channels], each divided by its layer's pixel
-        count (the heads' outputs are averaged over pixels), and twice that (for the backward); made once
-        per image size, dtype and device."""
-        key = tuple(t.shape[2:] for t in taps) + (taps[0].dtype, taps[0].device)
+        count (the heads' outputs are averaged over pixels; ``frame``: the count of an image of that
+        size, of which the taps' image is a window), and twice that (for the backward); made once per
+        image size, frame, dtype and device."""
+        sizes = [tuple(t.shape[2:]) for t in taps] if frame is None else \
+            [_conv_size(frame, i) for i in range(len(taps))]
+        key = (*sizes, tuple(taps[0].shape[2:]), taps[0].dtype, taps[0].device)
         if key not in self._head_weights:
             with torch.no_grad():
-                w = torch.cat([head.weight.flatten() / (t.shape[2] * t.shape[3]) for head, t in zip(self.heads, taps)])
+                w = torch.cat([head.weight.flatten() / (h * w) for head, (h, w) in zip(self.heads, sizes)])
                 self._head_weights[key] = (w, 2 * w)
         return self._head_weights[key]
 
@@ -88,14 +95,15 @@ class LPIPSAlex(nn.Module):
         return super()._apply(fn, recurse)
 
     def forward(self, x: torch.Tensor, y: torch.Tensor | None = None,
-                y_units: list[torch.Tensor] | None = None) -> torch.Tensor:
-        """Distance [B] of ``x`` to ``y``, or to a target given as ``y_units`` (:meth:`units` of it)."""
+                y_units: list[torch.Tensor] | None = None, frame: tuple[int, int] | None = None) -> torch.Tensor:
+        """Distance [B] of ``x`` to ``y``, or to a target given as ``y_units`` (:meth:`units` of it);
+        ``frame``: the size of the image x and y are a window of (the class docstring)."""
         if y_units is None:
             fx, fy = self.features(x), self.features(y)
-            return _Distance.apply(*self.head_weights(fx), *fx, *fy)
+            return _Distance.apply(*self.head_weights(fx, frame), *fx, *fy)
         if y is not None or len(y_units) != len(self.convs) or y_units[0].shape[2:] != _conv_size(x.shape[2:], 0):
             raise ValueError("give y or y_units (units() of an image of x's size), not both")
-        weights, weights2 = self.head_weights(y_units)
+        weights, weights2 = self.head_weights(y_units, frame)
         params = [t for conv in self.convs for t in (conv.weight, conv.bias)]
         return _ToUnits.apply(x, self.gain, self.offset, weights, weights2, *params, *y_units)
 

@@ -5,9 +5,16 @@ The posed body of every training frame is computed once, up front, in batches, a
 in the cache's budget) each frame's face table (the mesh half of posing the Gaussians) and, with a fixed
 background, its composited target and the target's LPIPS features; a step then only runs avatar ->
 rasterizer -> losses. Each saves a step dozens of tensor operations (GPU kernel launches).
+
+So are the LPIPS windows (``loss.lpips_region: person``): one window size for the whole run, the largest
+padded mask box of any training frame (:func:`lpips_window_size`), placed around each frame's own box
+(:func:`place_window`) and kept as index tensors, so a step crops with tensor indexing and its shapes
+never depend on the frame (a step can be captured once and replayed).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -16,7 +23,7 @@ from rmavatar.avatar.model import FACE_TABLE
 from rmavatar.body import PoseSequence, posed_vertices
 from rmavatar.render.camera import CameraTensors
 from rmavatar.render.composite import composite
-from rmavatar.train.losses import lpips_units
+from rmavatar.train.losses import Window, lpips_units
 from rmavatar.utils import UserError
 from rmavatar.utils.device import constant
 
@@ -24,6 +31,18 @@ from rmavatar.utils.device import constant
 # bytes (filled in this order, each kind for every frame or not at all): face tables, composited targets,
 # the targets' LPIPS features.
 FRAME_CACHE_BYTES = 2 * 2**30
+
+# The LPIPS window: a mask box (pixels with mask >= MASK_THRESHOLD: half-covered pixels and more, so faint
+# soft-mask noise far from the person does not stretch the box) grows on each side by the larger of
+# WINDOW_PAD of its side and WINDOW_PAD_MIN pixels (AlexNet's first layers see 11+ pixels around each
+# output, and a render's stray Gaussians just outside the silhouette should still be seen); the run's
+# window side is a multiple of WINDOW_MULTIPLE (AlexNet's stride 4 and two stride-2 pools) and at least
+# WINDOW_MIN pixels, but never more than the image.
+MASK_THRESHOLD = 0.5
+WINDOW_PAD = 0.08
+WINDOW_PAD_MIN = 16
+WINDOW_MULTIPLE = 8
+WINDOW_MIN = 64
 
 
 def open_dataset(data):
@@ -88,10 +107,47 @@ def background_color(kind: str, generator: torch.Generator, device: torch.device
     return torch.rand(3, generator=generator).to(device, non_blocking=True)
 
 
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(top, bottom, left, right) of the pixels of ``mask`` [H,W] >= MASK_THRESHOLD, bottom and right
+    exclusive; None when there are none."""
+    on = np.asarray(mask) >= MASK_THRESHOLD
+    rows, cols = np.flatnonzero(on.any(axis=1)), np.flatnonzero(on.any(axis=0))
+    if rows.size == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def lpips_window_size(boxes: list[tuple[int, int, int, int] | None], height: int, width: int) -> tuple[int, int]:
+    """The run's LPIPS window (h, w): the largest padded box of ``boxes`` (mask_box of each frame; None:
+    an empty mask) in each direction, rounded up to a multiple of WINDOW_MULTIPLE, at least WINDOW_MIN
+    (or the image side, when smaller), at most the image's ``height`` x ``width``."""
+    def side(extent: int, image: int) -> int:
+        padded = extent + 2 * max(math.ceil(WINDOW_PAD * extent), WINDOW_PAD_MIN)
+        return min(max(-(-padded // WINDOW_MULTIPLE) * WINDOW_MULTIPLE, WINDOW_MIN), image)
+
+    found = [b for b in boxes if b is not None]
+    h = max((side(b[1] - b[0], height) for b in found), default=0)
+    w = max((side(b[3] - b[2], width) for b in found), default=0)
+    return max(h, min(WINDOW_MIN, height)), max(w, min(WINDOW_MIN, width))
+
+
+def place_window(box: tuple[int, int, int, int] | None, size: tuple[int, int], height: int,
+                 width: int) -> tuple[int, int]:
+    """(top, left) of a ``size`` (h, w) window centred on ``box`` (mask_box; None: the image's centre)
+    and shifted to lie inside the ``height`` x ``width`` image. A box no larger than the window is
+    inside it: the window covers the box wherever the image's edge pushed it."""
+    h, w = size
+    top, bottom, left, right = box if box is not None else (0, height, 0, width)
+    r0 = min(max((top + bottom - h) // 2, 0), height - h)
+    c0 = min(max((left + right - w) // 2, 0), width - w)
+    return r0, c0
+
+
 class FrameCache:
     """The n training frames of ``split`` on ``device``: ``cameras`` (CameraTensors), the held bodies
-    (``vertices`` [n,V,3], ``body_pose`` [n,69]: what every step without per-step pose corrections uses)
-    and, within a byte budget (:meth:`fill`), ``face_tables`` [n,Fb,38], ``targets`` [n,H,W,3] and the
+    (``vertices`` [n,V,3], ``body_pose`` [n,69]: what every step without per-step pose corrections uses),
+    the LPIPS windows (``window_rows`` [n,h], ``window_cols`` [n,w]; None: LPIPS on the whole frame) and,
+    within a byte budget (:meth:`fill`), ``face_tables`` [n,Fb,38], ``targets`` [n,H,W,3] and the
     targets' LPIPS features (None where they did not fit: computed at each step instead)."""
 
     def __init__(self, dataset, split: str, body, device: torch.device):
@@ -102,6 +158,7 @@ class FrameCache:
         self.width, self.height = cams[0].width, cams[0].height
         self.cameras = [CameraTensors(v, k, self.width, self.height) for v, k in zip(viewmats, Ks)]
         self.avatar = self.face_tables = self.targets = self.target_units = self._cached_bg = None
+        self.window_rows = self.window_cols = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -115,11 +172,16 @@ class FrameCache:
         if self.face_tables is not None:
             self.face_tables = self._face_tables()
 
-    def fill(self, avatar, background: str, lpips: bool, generator: torch.Generator, budget: int) -> None:
-        """Cache within ``budget`` bytes, in this order: the face tables of ``avatar``; with a fixed
-        ``background`` the composited targets; with ``lpips`` their LPIPS features."""
+    def fill(self, avatar, background: str, lpips: bool, generator: torch.Generator, budget: int,
+             lpips_region: str = "frame") -> None:
+        """With ``lpips`` and ``lpips_region`` "person" (the run's ``loss.lpips_region``), the frames' LPIPS
+        windows (:meth:`lpips_window`); then cache within ``budget`` bytes, in this order: the face tables
+        of ``avatar``; with a fixed ``background`` the composited targets; with ``lpips`` their LPIPS
+        features (of their windows)."""
         n = len(self)
         self.avatar = avatar
+        if lpips and lpips_region == "person":
+            self._make_windows()
         need = n * avatar.binding_faces.shape[0] * FACE_TABLE * self.vertices.element_size()
         if need <= budget:
             self.face_tables = self._face_tables()
@@ -134,9 +196,25 @@ class FrameCache:
         self._cached_bg = bg
         budget -= need
         if lpips:
-            first = lpips_units(self.targets[0])
+            first = lpips_units(self.targets[0], self.lpips_window(0))
             if n * sum(u.numel() * u.element_size() for u in first) <= budget:
-                self.target_units = [first] + [lpips_units(t) for t in self.targets[1:]]
+                self.target_units = [first] + [lpips_units(t, self.lpips_window(i))
+                                               for i, t in enumerate(self.targets[1:], 1)]
+
+    def _make_windows(self) -> None:
+        """``window_rows`` [n,h] and ``window_cols`` [n,w] (long, on the device) from every frame's mask:
+        one size for all (:func:`lpips_window_size`), each placed around its own frame's box."""
+        boxes = [mask_box(self.dataset.frame(self.split, i).mask) for i in range(len(self))]
+        size = lpips_window_size(boxes, self.height, self.width)
+        corners = [place_window(box, size, self.height, self.width) for box in boxes]
+        rows = torch.tensor([r0 for r0, _ in corners], dtype=torch.long)[:, None] + torch.arange(size[0])
+        cols = torch.tensor([c0 for _, c0 in corners], dtype=torch.long)[:, None] + torch.arange(size[1])
+        self.window_rows, self.window_cols = rows.to(self.device), cols.to(self.device)
+
+    def lpips_window(self, i: int) -> Window | None:
+        """Frame ``i``'s LPIPS window (rows [h], cols [w]: long on the device, one size for every frame),
+        for ``total_loss(lpips_window=)`` (and ``lpips_units``), or None: LPIPS on the whole frame."""
+        return None if self.window_rows is None else (self.window_rows[i], self.window_cols[i])
 
     @torch.no_grad()
     def _face_tables(self) -> torch.Tensor:
@@ -158,7 +236,8 @@ class FrameCache:
         return composite(image, mask, bg)
 
     def lpips_units(self, i: int, bg: torch.Tensor) -> list[torch.Tensor] | None:
-        """The cached LPIPS features of ``target(i, bg)`` (for ``total_loss(lpips_units=)``), or None."""
+        """The cached LPIPS features of ``target(i, bg)`` cropped to ``lpips_window(i)`` (for
+        ``total_loss(lpips_units=, lpips_window=)``), or None."""
         return self.target_units[i] if self.target_units is not None and bg is self._cached_bg else None
 
     def frames(self):

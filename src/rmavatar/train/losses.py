@@ -7,6 +7,10 @@ L = rgb L1 + ssim (1 - SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + off
 The paper writes each regulariser as an L2 norm; per Gaussian we take that norm and average over the
 Gaussians so the terms do not grow with the Gaussian count. The offset term is the mean of squares, as
 the public release computes it (one mean per offset kind, summed).
+
+LPIPS is taken on a window around the person (``LossConfig.lpips_region``, docs/train.md): outside the
+mask the target is the plain background, which the L1 term already covers. A window is two index
+tensors (rows [h], cols [w]) of one size for the whole run, so a step's shapes never depend on the frame.
 """
 
 from __future__ import annotations
@@ -24,6 +28,9 @@ from rmavatar.utils.device import constant
 from rmavatar.utils.config import check_fields
 
 
+LPIPS_REGIONS = ("person", "frame")
+
+
 @dataclass
 class LossConfig:
     """Loss weights: L = rgb L1 + ssim (1-SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset."""
@@ -36,9 +43,13 @@ class LossConfig:
     offset: float = 1.0  # weight of L_offset, which keeps the rectifier's offsets small (0: the paper's ablation)
     eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
+    lpips_region: str = "person"  # LPIPS on: "person" (a fixed-size window around the mask), "frame" (the whole image)
 
     def validate(self) -> "LossConfig":
-        check_fields(self, "loss", nonnegative=tuple(f.name for f in dataclasses.fields(self)))
+        if self.lpips_region not in LPIPS_REGIONS:
+            raise UserError(f"loss.lpips_region must be one of {', '.join(LPIPS_REGIONS)}, not {self.lpips_region!r}")
+        weights = tuple(f.name for f in dataclasses.fields(self) if f.name != "lpips_region")
+        check_fields(self, "loss", nonnegative=weights)
         return self
 
 
@@ -156,11 +167,26 @@ def _default_lpips(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return lpips(_Clamp01.apply(a), b, check_range=False)
 
 
-def lpips_units(target: torch.Tensor) -> list[torch.Tensor]:
+Window = tuple[torch.Tensor, torch.Tensor]  # (rows [h], cols [w]): torch.long indices into an image's rows, columns
+
+
+def crop(image: torch.Tensor, window: Window) -> torch.Tensor:
+    """``image`` [H,W,C] at the window's rows and columns: [h,w,C]. Index tensors on the image's device,
+    never Python numbers read from it, so the shape is the window's whatever the frame (a step keeps
+    static shapes) and no step waits on the device; the gradient is the incoming one scattered back,
+    zero outside the window."""
+    rows, cols = window
+    return image.index_select(0, rows).index_select(1, cols)
+
+
+def lpips_units(target: torch.Tensor, window: Window | None = None) -> list[torch.Tensor]:
     """What LPIPS needs of a target image [H,W,3] (its unit features, no gradient), for
-    ``total_loss(..., lpips_units=)``: a target used at many steps goes through the network once."""
+    ``total_loss(..., lpips_units=)``: a target used at many steps goes through the network once.
+    ``window``: of the target's crop (the same window must then go to ``total_loss``)."""
     from rmavatar.evaluate.lpips_net import load_lpips
 
+    if window is not None:
+        target = crop(target, window)
     return load_lpips(target.device, target.dtype).units(target.permute(2, 0, 1).unsqueeze(0))
 
 
@@ -168,6 +194,19 @@ def _lpips_to_units(a: torch.Tensor, units: list[torch.Tensor]) -> torch.Tensor:
     from rmavatar.evaluate.lpips_net import load_lpips
 
     return load_lpips(a.device, a.dtype)(_Clamp01.apply(a).permute(2, 0, 1).unsqueeze(0), y_units=units).squeeze(0)
+
+
+def _lpips_term(render: torch.Tensor, target: torch.Tensor, lpips_fn: ImageFn | None,
+                units: list[torch.Tensor] | None, window: Window | None) -> torch.Tensor:
+    """LPIPS of render to target [H,W,3] (scalar), both cropped to ``window`` when given; from the
+    target's ``units`` (of the same crop) when given and the default LPIPS is used."""
+    if window is not None:
+        render = crop(render, window)
+    if units is not None and lpips_fn is None:
+        return _lpips_to_units(render, units)
+    if window is not None:
+        target = crop(target, window)
+    return (lpips_fn or _default_lpips)(render, target)
 
 
 def total_loss(
@@ -178,6 +217,7 @@ def total_loss(
     lpips_fn: ImageFn | None = None,
     ssim_fn: ImageFn | None = None,
     lpips_units: list[torch.Tensor] | None = None,
+    lpips_window: Window | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of all terms, and each unweighted term (detached) by name.
 
@@ -187,6 +227,9 @@ def total_loss(
     ssim_fn / lpips_fn (a, b) -> scalar similarity / distance; None = ``rmavatar.evaluate``'s.
     lpips_units: :func:`lpips_units` of ``target``, when the caller keeps them (training, per frame):
     the default LPIPS then does not run the target through its network again.
+    lpips_window: (rows [h], cols [w]) long index tensors on the images' device: LPIPS (and lpips_fn)
+    sees render and target cropped to them (:func:`crop`; training: ``FrameCache.lpips_window``, the
+    person's window), and ``lpips_units`` must be of that crop; None: the whole images.
     Terms with weight 0 are not computed.
     """
     if render.shape != target.shape:
@@ -203,10 +246,7 @@ def total_loss(
     if w["ssim"]:
         values.append(("ssim", (ssim_fn or _default_ssim)(render, target).view(1)))
     if w["lpips"]:
-        if lpips_units is not None and lpips_fn is None:
-            values.append(("lpips", _lpips_to_units(render, lpips_units).view(1)))
-        else:
-            values.append(("lpips", (lpips_fn or _default_lpips)(render, target).view(1)))
+        values.append(("lpips", _lpips_term(render, target, lpips_fn, lpips_units, lpips_window).view(1)))
     means, log_scales, offsets = (None, None, None) if extras is None else (
         extras.local_means, extras.local_log_scales, extras.offsets)
     if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):

@@ -170,6 +170,12 @@ class PoseRefinement:
             return None
         return (*self.refiner.posed(body, i), None)
 
+    def frame_inputs(self, i: int, iteration: int) -> tuple[torch.Tensor, ...] | None:
+        """What :func:`rmavatar.train.poses.pose_corrected` takes to pose frame ``i``'s corrected body at
+        step ``iteration`` (a training step runs it in one graph with the avatar's posing), or None as
+        :meth:`frame_body`."""
+        return self.refiner.frame_inputs(i) if self.refiner.active(iteration) else None
+
     def gradients(self) -> list[torch.Tensor]:
         grad = self.refiner.delta.grad
         return [] if grad is None else [grad]

@@ -58,11 +58,15 @@ class PoseRefiner:
         """Frame ``i``'s corrected body: vertices [V,3] (differentiable in ``delta``) and body_pose [69]
         for the rectifier. The rectifier sees the corrected pose but sends no gradient into it: the
         corrections are to align the body with the image, not to suit the MLP."""
-        one = apply_pose_corrections(self.base.select(slice(i, i + 1)), self.delta[i : i + 1])
-        betas = None if self.betas is None else self.betas[i : i + 1]
-        # NaN/inf are caught by the trainer's one device-side check (the Gaussians and every gradient)
-        vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False).vertices[0].float()
-        return vertices, one.body_pose[0].detach()
+        return pose_corrected(body, *self.frame_inputs(i))
+
+    def frame_inputs(self, i: int) -> tuple[torch.Tensor, ...]:
+        """What :func:`pose_corrected` takes for frame ``i``: its correction row [1,75] (a view of
+        ``delta``, so gradients reach it), its base global_orient [1,3], body_pose [1,69], transl [1,3],
+        and its betas [1,nb] when the body has a shape."""
+        base = self.base.select(slice(i, i + 1))
+        rows = (self.delta[i : i + 1], base.global_orient, base.body_pose, base.transl)
+        return rows if self.betas is None else (*rows, self.betas[i : i + 1])
 
     def zero_grad(self) -> None:
         self.delta.grad = None
@@ -145,3 +149,16 @@ def read_poses(path: Path, index: np.ndarray, split: str) -> PoseSequence:
         if str(f["split"]) != split or not np.array_equal(f["index"], index):
             raise UserError(f"{path} holds the poses of other frames than this run's {len(index)} {split!r} frames")
         return PoseSequence.from_arrays(f["global_orient"], f["body_pose"], f["transl"])
+
+
+def pose_corrected(body, delta: torch.Tensor, global_orient: torch.Tensor, body_pose: torch.Tensor,
+                   transl: torch.Tensor, betas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame's body posed with its correction ``delta`` [1,75] applied to its base pose
+    (global_orient [1,3], body_pose [1,69], transl [1,3]): vertices [V,3], differentiable in ``delta``,
+    and the corrected body_pose [69] without gradient (:meth:`PoseRefiner.posed`). Tensor operations only:
+    a CUDA step replays it in a graph with the avatar's posing."""
+    one = apply_pose_corrections(PoseSequence(global_orient, body_pose, transl), delta)
+    # NaN/inf are caught by the trainer's one device-side check (the Gaussians and every gradient)
+    vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False).vertices[0].float()
+    return vertices, one.body_pose[0].detach()
+

@@ -16,6 +16,7 @@ Density control itself may sync (it is rare).
 
 from __future__ import annotations
 
+import functools
 import random
 import signal
 import time
@@ -26,16 +27,17 @@ from typing import Callable
 import numpy as np
 import torch
 
-from rmavatar.avatar.frame import render_frame
 from rmavatar.avatar.model import Avatar
 from rmavatar.avatar.run import Checkpoint, RunFolder, body_signature, check_body, training_betas
 from rmavatar.body import PoseSequence, load_body_model, smooth_poses
 from rmavatar.data import Dataset
+from rmavatar.render import rasterize
 from rmavatar.train.checkpoint import capture_rng, restore_rng, save_checkpoint
 from rmavatar.train.config import TrainConfig, to_dict
 from rmavatar.train.frames import FRAME_CACHE_BYTES, FrameCache, FrameSampler, background_color, open_dataset
-from rmavatar.train.losses import total_loss
+from rmavatar.train.graphs import StepGraphs
 from rmavatar.train.pose_refine import PoseFiles, load_pose_state
+from rmavatar.train.poses import pose_corrected
 from rmavatar.train.report import NonFiniteGuard, Reporter, finite_flag
 from rmavatar.utils import resolve_device
 from rmavatar.utils.device import keep_freed_memory, set_threads
@@ -90,6 +92,8 @@ class Trainer:
         self.optimizer = cfg.optim.build(self.avatar)
         self.density = cfg.density.build(self.avatar, self.optimizer, cfg.optim.iters, seed=cfg.seed)
         self.guard = NonFiniteGuard(self.device, cfg.log.max_bad_steps)
+        self.graphs = StepGraphs(self.avatar, cfg.loss, cfg.cuda_graphs)
+        self._pose_corrected = functools.partial(pose_corrected, self.body)
         self.poses = None
         if cfg.poses.refines(estimated):
             held = cfg.poses.first_pass_iters(cfg.optim.iters, estimated) > 0  # the second of two passes
@@ -109,7 +113,8 @@ class Trainer:
             poses = self.poses.start_poses(poses, self.run_folder.pose_pass, params["index"], split, ckpt is not None)
         self.frames.hold(poses)
         self.ckpt = None  # free the loaded tensors
-        self.frames.fill(self.avatar, cfg.background, bool(cfg.loss.lpips), self.bg_generator, FRAME_CACHE_BYTES)
+        self.frames.fill(self.avatar, cfg.background, bool(cfg.loss.lpips), self.bg_generator, FRAME_CACHE_BYTES,
+                         cfg.loss.lpips_region)
         # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
         for stale in self.run_folder.checkpoint.parent.glob(".last.*.tmp.pt"):
             stale.unlink(missing_ok=True)
@@ -139,14 +144,21 @@ class Trainer:
         i = self.sampler.next()
         bg = background_color(cfg.background, self.bg_generator, self.device)
         target = self.frames.target(i, bg)
-        vertices, body_pose, table = self.frame_body(i, it)
-        out = render_frame(self.avatar, vertices, body_pose, self.frames.cameras[i], bg, table=table, check=False)
-        loss, parts = total_loss(out.image, target, out.extras, cfg.loss, lpips_units=self.frames.lpips_units(i, bg))
+        cam = self.frames.cameras[i]
+        refined = None if self.poses is None else self.poses.frame_inputs(i, it)
+        if refined is not None:  # the corrected body, posed in the same graph as the avatar
+            posed = self.graphs.pose_body(self._pose_corrected, refined, cam.viewmat)
+        else:
+            posed = self.graphs.pose(*self.frames.held(i), cam.viewmat)  # rasterized eagerly in between
+        image, _, info = rasterize(posed.means, posed.quats, posed.scales, posed.opacities, posed.colors,
+                                   cam.viewmat, cam.K, cam.width, cam.height, background=bg, check=False)
+        loss, parts = self.graphs.losses(image, target, posed, self.frames.lpips_units(i, bg),
+                                         self.frames.lpips_window(i))
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
         grads += [] if self.poses is None else self.poses.gradients()
-        gs = out.gaussians  # checked on the device in one reduction with the loss and every gradient
-        ok, bad = finite_flag(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, loss, *grads)
+        # checked on the device in one reduction with the loss and every gradient
+        ok, bad = finite_flag(*posed[:5], loss, *grads)
         if self.optimizer.defaults.get("fused"):  # skips on the device, no sync
             self.optimizer.grad_scale, self.optimizer.found_inf = None, bad
             self.optimizer.step()
@@ -155,10 +167,10 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         if self.poses is not None:
             self.poses.after_step(i, it, ok)
-        events = self.density.after_step(it, out.info, self.frames.width, self.frames.height, valid=ok)
+        events = self.density.after_step(it, info, self.frames.width, self.frames.height, valid=ok)
         self.guard.update(bad)
         return {"ok": ok, "loss": loss.detach(), **parts, "frame": i, "lr_position": lr, "events": events,
-                "image": out.image.detach(), "target": target}
+                "image": image.detach(), "target": target}
 
     def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Vertices [V,3], body_pose [69] and face table (or None: to be computed) of training frame ``i``
@@ -198,6 +210,10 @@ class Trainer:
         else:
             report.summary(self.iteration - start, time.perf_counter() - started, self.avatar.num_gaussians,
                            self.pose_error)
+            if self.progress and self.device.type == "cuda":
+                g = self.graphs
+                print(f"CUDA graphs: {g.captures} captured in {g.capture_s:.1f} s" if g.enabled
+                      else f"CUDA graphs off: {g.off_reason}")
         return TrainResult(self.iteration, interrupted, self.run_folder.path, report.history)
 
 
