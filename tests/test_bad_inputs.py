@@ -473,3 +473,20 @@ def test_text_file_given_as_motion_is_not_called_a_pickle(tmp_path):
     (tmp_path / "e.npy").write_bytes(b"")
     with pytest.raises(UserError, match=r"e.npy: .*it is not a NumPy .npz or .npy file \(it is empty\)"):
         load_motion(tmp_path / "e.npy")
+
+
+def test_a_pickle_given_as_a_checkpoint_is_refused_without_torch_s_warning(tmp_path):
+    # torch's weights-only unpickler warns about the pickle protocol before it refuses; our refusal says
+    # what is wrong, and nothing else is printed.
+    import warnings
+
+    from rmavatar.avatar.run import read_checkpoint
+    from rmavatar.utils import UserError
+
+    path = tmp_path / "last.pt"
+    with open(path, "wb") as fh:
+        pickle.dump({"format": "rmavatar-checkpoint"}, fh, protocol=4)
+    with warnings.catch_warnings(record=True) as caught, pytest.raises(UserError, match="pickled Python objects"):
+        warnings.simplefilter("always")
+        read_checkpoint(path)
+    assert not caught, [str(w.message) for w in caught]

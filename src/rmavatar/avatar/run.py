@@ -24,6 +24,7 @@ import json
 import os
 import socket
 import time
+import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Iterator
@@ -315,7 +316,11 @@ def read_checkpoint(path: str | os.PathLike) -> Checkpoint:
     if not path.is_file():
         raise UserError(f"checkpoint {path} does not exist")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            # torch's weights-only unpickler warns about a pickle's protocol before refusing it: the refusal
+            # below says what is wrong, in words that do not recommend unsafe loading
+            warnings.filterwarnings("ignore", module="torch._weights_only_unpickler")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
         raise UserError(f"{path} is not a readable rmavatar checkpoint: {load_error(exc)}") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
