@@ -9,8 +9,10 @@ import pytest
 import torch
 
 from rmavatar.avatar.run import CHECKPOINT_VERSION, MIGRATIONS, migrate_config
+from rmavatar.evaluate.lpips_net import load_lpips
 from rmavatar.train.config import LossConfig, load_config, save_config, to_dict
 from rmavatar.train.frames import (
+    WINDOW_ALIGN,
     WINDOW_MIN,
     WINDOW_MULTIPLE,
     WINDOW_PAD_MIN,
@@ -103,13 +105,28 @@ def test_a_window_covers_its_box_inside_the_image():
     for box in BOXES:
         r0, c0 = place_window(box, size, H, W)
         assert 0 <= r0 <= H - size[0] and 0 <= c0 <= W - size[1]
-        if box is None:  # an empty mask: the centre
-            assert (r0, c0) == ((H - size[0]) // 2, (W - size[1]) // 2)
+        if box is None:  # an empty mask: around the centre
+            assert r0 <= H // 2 < r0 + size[0] and c0 <= W // 2 < c0 + size[1]
+            assert abs(r0 - (H - size[0]) // 2) < WINDOW_ALIGN and abs(c0 - (W - size[1]) // 2) < WINDOW_ALIGN
         else:
             top, bottom, left, right = box
             assert r0 <= top and bottom <= r0 + size[0] and c0 <= left and right <= c0 + size[1], box
     assert place_window((0, 30, 60, 80), (64, 64), H, W) == (0, 16)  # at the corner: shifted inside
-    assert place_window((40, 50, 40, 50), (64, 64), 128, 128) == (13, 13)  # centred away from the edges
+    # centred: 13, 13; the nearest start on the 16-pixel grid that holds the box
+    assert place_window((40, 50, 40, 50), (64, 64), 128, 128) == (16, 16)
+    assert place_window((40, 50, 4, 14), (64, 64), 128, 128) == (16, 0)
+    # at the bottom edge no start on the grid holds the box (32 ends above it, 48 below the image): 36
+    assert place_window((60, 100, 0, 10), (64, 64), 100, 100) == (36, 0)
+    # a box with the padding lpips_window_size gives it (16 px a side) starts on the grid, but where
+    # the image's edge holds it
+    gen = np.random.default_rng(1)
+    for _ in range(200):
+        top, left = gen.integers(0, 220, 2)
+        box = (int(top), int(top + gen.integers(1, 33)), int(left), int(left + gen.integers(1, 33)))
+        r0, c0 = place_window(box, (64, 72), 256, 260)
+        assert r0 <= box[0] and box[1] <= r0 + 64 <= 256 and c0 <= box[2] and box[3] <= c0 + 72 <= 260
+        assert r0 % WINDOW_ALIGN == 0 or r0 + 64 == 256, (box, r0)
+        assert c0 % WINDOW_ALIGN == 0 or c0 + 72 == 260, (box, c0)
 
 
 def test_the_frame_cache_keeps_one_window_per_frame():
@@ -170,17 +187,38 @@ def _window(r0, c0, h, w, device="cpu"):
 LPIPS_ONLY = LossConfig(rgb=0.0, ssim=0.0, lpips=1.0, pos=0.0, scaling=0.0, offset=0.0)
 
 
-@pytest.mark.parametrize("corner", [(10, 7), (0, 0), (32, 16)])  # inside, at the top-left, at the bottom-right
-def test_loss_on_the_window_is_lpips_of_the_slice_by_hand(corner):
-    """Value and gradient (float64) of the LPIPS term with a window against plain autograd through
-    evaluate.lpips of ``render[r0:r1, c0:c1]``: the pixels outside the window get exactly zero."""
+def _lpips_by_hand(x, y, frame):
+    """LPIPS v0.1 of images x (clamped to [0, 1]) and y [h,w,3] float64 under plain autograd, from the
+    network's five ReLU outputs: sum over layers of sum_c w_c sum over pixels of (u_x - u_y)^2 with
+    u = f / (|f| + 1e-10), divided by the layer's pixel count in an image of size ``frame``."""
+    net = load_lpips("cpu", torch.float64)
+    fx, fy = (net.features(t.permute(2, 0, 1)[None]) for t in (x.clamp(0.0, 1.0), y))
+    counts = [t.shape[2] * t.shape[3] for t in net.features(torch.zeros(1, 3, *frame, dtype=torch.float64))]
+    total = 0.0
+    for head, a, b, n in zip(net.heads, fx, fy, counts):
+        ua, ub = (f / (torch.linalg.vector_norm(f, dim=1, keepdim=True) + 1e-10) for f in (a, b))
+        total = total + (head.weight * (ua - ub).square()).sum() / n
+    return total
+
+
+def test_the_reference_is_lpips():
     from rmavatar.evaluate import lpips
 
+    render, target = _images(64, 48)
+    torch.testing.assert_close(_lpips_by_hand(render, target, (64, 48)),
+                               lpips(render.clamp(0.0, 1.0), target, check_range=False), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("corner", [(10, 7), (0, 0), (32, 16)])  # inside, at the top-left, at the bottom-right
+def test_loss_on_the_window_is_lpips_of_the_slice_by_hand(corner):
+    """Value and gradient (float64) of the LPIPS term with a window against LPIPS by hand (plain
+    autograd) of ``render[r0:r1, c0:c1]``, each layer averaged over the whole frame's pixel count: the
+    pixels outside the window get exactly zero."""
     r0, c0 = corner
     h, w = 64, 64
     render, target = _images()
     loss, parts = total_loss(render, target, None, LPIPS_ONLY, lpips_window=_window(r0, c0, h, w))
-    plain = lpips(render[r0:r0 + h, c0:c0 + w].clamp(0.0, 1.0), target[r0:r0 + h, c0:c0 + w], check_range=False)
+    plain = _lpips_by_hand(render[r0:r0 + h, c0:c0 + w], target[r0:r0 + h, c0:c0 + w], (H, W))
     torch.testing.assert_close(loss, plain, rtol=1e-12, atol=0)
     torch.testing.assert_close(parts["lpips"], plain.detach(), rtol=1e-12, atol=0)
     (ours,) = torch.autograd.grad(loss, render)
@@ -195,14 +233,14 @@ def test_loss_on_the_window_is_lpips_of_the_slice_by_hand(corner):
 
 def test_the_other_terms_still_see_the_whole_frame():
     """With the paper's weights and a window, L1 and SSIM are the whole frame's and LPIPS the window's."""
-    from rmavatar.evaluate import lpips, ssim
+    from rmavatar.evaluate import ssim
 
     render, target = _images(seed=1)
     cfg = LossConfig()
     window = _window(8, 4, 64, 64)
     loss, _ = total_loss(render, target, None, cfg, lpips_window=window)
     plain = (cfg.rgb * (render - target).abs().mean() + cfg.ssim * (1.0 - ssim(render, target, check_range=False))
-             + cfg.lpips * lpips(render[8:72, 4:68].clamp(0.0, 1.0), target[8:72, 4:68], check_range=False))
+             + cfg.lpips * _lpips_by_hand(render[8:72, 4:68], target[8:72, 4:68], (H, W)))
     torch.testing.assert_close(loss, plain, rtol=1e-12, atol=0)
     for a, b in zip(torch.autograd.grad(loss, render), torch.autograd.grad(plain, render)):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12 * float(b.abs().max()))
@@ -225,12 +263,39 @@ def test_cached_units_with_the_window_equal_the_uncached_path():
         total_loss(render, target, None, LPIPS_ONLY, lpips_units=lpips_units(target), lpips_window=window)
 
 
-def test_a_custom_lpips_sees_both_crops():
+def test_a_custom_lpips_sees_both_crops_as_a_share_of_the_frame():
     render, target = _images(seed=3)
     seen = []
-    fn = lambda a, b: seen.append((a.shape, b.shape)) or (a - b).abs().mean()  # noqa: E731
-    total_loss(render, target, None, LPIPS_ONLY, lpips_fn=fn, lpips_window=_window(0, 0, 40, 48))
+    fn = lambda a, b: seen.append((a.shape, b.shape)) or torch.tensor(0.5, dtype=a.dtype)  # noqa: E731
+    loss, _ = total_loss(render, target, None, LPIPS_ONLY, lpips_fn=fn, lpips_window=_window(0, 0, 40, 48))
     assert seen == [((40, 48, 3), (40, 48, 3))]
+    assert float(loss) == pytest.approx(0.5 * 40 * 48 / (H * W), rel=1e-12)
+
+
+def test_the_window_keeps_the_whole_frames_meaning():
+    """A person on a white background, the render wrong only on the person: LPIPS of the window (the
+    run's window, on the 16-pixel grid) is near the whole frame's, in value and in gradient on the
+    person (not equal: the deeper layers' receptive fields reach past the window's edges, into the
+    background), where the window's own average would weigh it about frame / window times as much."""
+    h_img = w_img = 160
+    box = (16, 136, 60, 100)
+    gen = torch.Generator().manual_seed(4)
+    target = torch.ones(h_img, w_img, 3, dtype=torch.float64)
+    person = (slice(box[0], box[1]), slice(box[2], box[3]))
+    target[person] = torch.rand(box[1] - box[0], box[3] - box[2], 3, generator=gen, dtype=torch.float64)
+    render = target.clone()
+    render[person] += 0.2 * torch.randn(target[person].shape, generator=gen, dtype=torch.float64)
+    render.requires_grad_(True)
+    size = lpips_window_size([box], h_img, w_img)
+    r0, c0 = place_window(box, size, h_img, w_img)
+    assert r0 % WINDOW_ALIGN == 0 and c0 % WINDOW_ALIGN == 0 and size[0] * size[1] < 0.5 * h_img * w_img
+    whole, _ = total_loss(render, target, None, LPIPS_ONLY)
+    part, _ = total_loss(render, target, None, LPIPS_ONLY, lpips_window=_window(r0, c0, *size))
+    own = _lpips_by_hand(render[r0:r0 + size[0], c0:c0 + size[1]], target[r0:r0 + size[0], c0:c0 + size[1]], size)
+    assert 0.65 < float(part.detach() / whole.detach()) < 1.1 and float(own.detach() / whole.detach()) > 1.8
+    (g_whole,) = torch.autograd.grad(whole, render)
+    (g_part,) = torch.autograd.grad(part, render)
+    assert float((g_part - g_whole)[person].norm() / g_whole[person].norm()) < 0.7
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -80,13 +80,13 @@ class LPIPSAlex(nn.Module):
         """The five heads' weights in one vector [sum of channels], each divided by its layer's pixel
         count (the heads' outputs are averaged over pixels; ``frame``: the count of an image of that
         size, of which the taps' image is a window), and twice that (for the backward); made once per
-        image size, frame, dtype and device."""
+        layer size, dtype and device."""
         sizes = [tuple(t.shape[2:]) for t in taps] if frame is None else \
             [_conv_size(frame, i) for i in range(len(taps))]
-        key = (*sizes, tuple(taps[0].shape[2:]), taps[0].dtype, taps[0].device)
+        key = (*sizes, taps[0].dtype, taps[0].device)
         if key not in self._head_weights:
             with torch.no_grad():
-                w = torch.cat([head.weight.flatten() / (h * w) for head, (h, w) in zip(self.heads, sizes)])
+                w = torch.cat([head.weight.flatten() / (rows * cols) for head, (rows, cols) in zip(self.heads, sizes)])
                 self._head_weights[key] = (w, 2 * w)
         return self._head_weights[key]
 

@@ -7,9 +7,9 @@ background, its composited target and the target's LPIPS features; a step then o
 rasterizer -> losses. Each saves a step dozens of tensor operations (GPU kernel launches).
 
 So are the LPIPS windows (``loss.lpips_region: person``): one window size for the whole run, the largest
-padded mask box of any training frame (:func:`lpips_window_size`), placed around each frame's own box
-(:func:`place_window`) and kept as index tensors, so a step crops with tensor indexing and its shapes
-never depend on the frame (a step can be captured once and replayed).
+padded mask box of any training frame (:func:`lpips_window_size`), placed around each frame's own box on
+AlexNet's 16-pixel grid (:func:`place_window`) and kept as index tensors, so a step crops with tensor
+indexing and its shapes never depend on the frame (a step can be captured once and replayed).
 """
 
 from __future__ import annotations
@@ -43,6 +43,11 @@ WINDOW_PAD = 0.08
 WINDOW_PAD_MIN = 16
 WINDOW_MULTIPLE = 8
 WINDOW_MIN = 64
+# A window starts on this grid where it can: AlexNet's stride at its third to fifth layers (4 x the two
+# pools' 2 x 2), so the window's features are the whole frame's features at the same places (a window
+# 1 px off samples every layer elsewhere), except near the window's edges, whose receptive fields reach
+# past it.
+WINDOW_ALIGN = 16
 
 
 def open_dataset(data):
@@ -133,14 +138,23 @@ def lpips_window_size(boxes: list[tuple[int, int, int, int] | None], height: int
 
 def place_window(box: tuple[int, int, int, int] | None, size: tuple[int, int], height: int,
                  width: int) -> tuple[int, int]:
-    """(top, left) of a ``size`` (h, w) window centred on ``box`` (mask_box; None: the image's centre)
-    and shifted to lie inside the ``height`` x ``width`` image. A box no larger than the window is
-    inside it: the window covers the box wherever the image's edge pushed it."""
+    """(top, left) of a ``size`` (h, w) window around ``box`` (mask_box; None: the image's centre) inside
+    the ``height`` x ``width`` image: centred on the box, shifted inside the image, then moved to the
+    nearest multiple of WINDOW_ALIGN that still holds the box (where one does). A box no larger than the
+    window is inside it wherever the image's edge pushed it."""
     h, w = size
-    top, bottom, left, right = box if box is not None else (0, height, 0, width)
-    r0 = min(max((top + bottom - h) // 2, 0), height - h)
-    c0 = min(max((left + right - w) // 2, 0), width - w)
-    return r0, c0
+    top, bottom, left, right = box if box is not None else (height // 2, height // 2, width // 2, width // 2)
+    return _window_start(top, bottom, h, height), _window_start(left, right, w, width)
+
+
+def _window_start(lo: int, hi: int, n: int, image: int) -> int:
+    """Start of an ``n``-pixel window on [0, image) holding [lo, hi): centred, inside, aligned if it can."""
+    start = min(max((lo + hi - n) // 2, 0), image - n)
+    down = start // WINDOW_ALIGN * WINDOW_ALIGN
+    for aligned in sorted((down, down + WINDOW_ALIGN), key=lambda a: abs(a - start)):
+        if aligned <= lo and hi <= aligned + n <= image:
+            return aligned
+    return start
 
 
 class FrameCache:

@@ -160,11 +160,17 @@ class _Clamp01(torch.autograd.Function):
         return x.clamp(0.0, 1.0)
 
 
-def _default_lpips(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def _default_lpips(a: torch.Tensor, b: torch.Tensor, frame: tuple[int, int] | None = None) -> torch.Tensor:
+    """LPIPS of a render to a target [h,w,3]; ``frame``: the size of the image they are a window of
+    (``LPIPSAlex.forward``)."""
     from rmavatar.evaluate import lpips
+    from rmavatar.evaluate.lpips_net import load_lpips
 
     # Renders may overshoot [0, 1] (SH colours are unbounded above); LPIPS sees what the image shows.
-    return lpips(_Clamp01.apply(a), b, check_range=False)
+    if frame is None:
+        return lpips(_Clamp01.apply(a), b, check_range=False)
+    x, y = _Clamp01.apply(a).permute(2, 0, 1).unsqueeze(0), b.permute(2, 0, 1).unsqueeze(0)
+    return load_lpips(a.device, a.dtype)(x, y, frame=frame).squeeze(0)
 
 
 Window = tuple[torch.Tensor, torch.Tensor]  # (rows [h], cols [w]): torch.long indices into an image's rows, columns
@@ -190,23 +196,34 @@ def lpips_units(target: torch.Tensor, window: Window | None = None) -> list[torc
     return load_lpips(target.device, target.dtype).units(target.permute(2, 0, 1).unsqueeze(0))
 
 
-def _lpips_to_units(a: torch.Tensor, units: list[torch.Tensor]) -> torch.Tensor:
+def _lpips_to_units(a: torch.Tensor, units: list[torch.Tensor],
+                    frame: tuple[int, int] | None = None) -> torch.Tensor:
     from rmavatar.evaluate.lpips_net import load_lpips
 
-    return load_lpips(a.device, a.dtype)(_Clamp01.apply(a).permute(2, 0, 1).unsqueeze(0), y_units=units).squeeze(0)
+    x = _Clamp01.apply(a).permute(2, 0, 1).unsqueeze(0)
+    return load_lpips(a.device, a.dtype)(x, y_units=units, frame=frame).squeeze(0)
 
 
 def _lpips_term(render: torch.Tensor, target: torch.Tensor, lpips_fn: ImageFn | None,
                 units: list[torch.Tensor] | None, window: Window | None) -> torch.Tensor:
-    """LPIPS of render to target [H,W,3] (scalar), both cropped to ``window`` when given; from the
-    target's ``units`` (of the same crop) when given and the default LPIPS is used."""
-    if window is not None:
-        render = crop(render, window)
+    """LPIPS of render to target [H,W,3] (scalar); from the target's ``units`` when given and the
+    default LPIPS is used. With a ``window``, of both cropped to it, as a share of the whole frame's:
+    each layer's distances averaged over the frame's feature pixels (the frame's LPIPS with nothing
+    counted outside the window, so a pixel in it gets about the gradient the whole frame's LPIPS gives
+    it; averaged over the window's own pixels the term would weigh about H W / (h w) times as much), and a
+    custom ``lpips_fn``'s value of the crops times h w / (H W)."""
+    if window is None:
+        if units is not None and lpips_fn is None:
+            return _lpips_to_units(render, units)
+        return (lpips_fn or _default_lpips)(render, target)
+    frame = (render.shape[0], render.shape[1])
+    render = crop(render, window)
     if units is not None and lpips_fn is None:
-        return _lpips_to_units(render, units)
-    if window is not None:
-        target = crop(target, window)
-    return (lpips_fn or _default_lpips)(render, target)
+        return _lpips_to_units(render, units, frame)
+    target = crop(target, window)
+    if lpips_fn is None:
+        return _default_lpips(render, target, frame)
+    return lpips_fn(render, target) * (render.shape[0] * render.shape[1] / (frame[0] * frame[1]))
 
 
 def total_loss(
@@ -229,7 +246,8 @@ def total_loss(
     the default LPIPS then does not run the target through its network again.
     lpips_window: (rows [h], cols [w]) long index tensors on the images' device: LPIPS (and lpips_fn)
     sees render and target cropped to them (:func:`crop`; training: ``FrameCache.lpips_window``, the
-    person's window), and ``lpips_units`` must be of that crop; None: the whole images.
+    person's window), as a share of the whole frame's LPIPS (``_lpips_term``), and ``lpips_units`` must
+    be of that crop; None: the whole images.
     Terms with weight 0 are not computed.
     """
     if render.shape != target.shape:
