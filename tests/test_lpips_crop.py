@@ -321,7 +321,7 @@ def test_a_step_with_the_window_reads_nothing_back(device):
 
 # ---------------------------------------------------------------------------------------------- the setting
 def test_lpips_region_is_validated():
-    assert LossConfig().lpips_region == "person"
+    assert LossConfig().lpips_region == "frame"  # the default: no quality lost (docs/train.md)
     assert LossConfig(lpips_region="frame").validate().lpips_region == "frame"
     with pytest.raises(UserError, match="loss.lpips_region"):
         LossConfig(lpips_region="box").validate()
@@ -355,7 +355,7 @@ def test_older_runs_keep_lpips_on_the_whole_frame(tmp_path):
 
     (tmp_path / "run_v5.yaml").write_text("version: 5\nloss:\n  lpips: 0.05\n")
     assert load_config(tmp_path / "run_v5.yaml", as_trained=True).loss.lpips_region == "frame"
-    assert load_config(tmp_path / "run_v5.yaml").loss.lpips_region == "person"
+    assert load_config(tmp_path / "run_v5.yaml").loss.lpips_region == LossConfig().lpips_region  # today's
     cfg = load_config(tmp_path / "run_v5.yaml", as_trained=True)
     save_config(cfg, tmp_path / "again.yaml")
     assert (tmp_path / "again.yaml").read_text().startswith("version: 6\n")

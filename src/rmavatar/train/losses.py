@@ -8,9 +8,10 @@ The paper writes each regulariser as an L2 norm; per Gaussian we take that norm 
 Gaussians so the terms do not grow with the Gaussian count. The offset term is the mean of squares, as
 the public release computes it (one mean per offset kind, summed).
 
-LPIPS is taken on a window around the person (``LossConfig.lpips_region``, docs/train.md): outside the
-mask the target is the plain background, which the L1 term already covers. A window is two index
-tensors (rows [h], cols [w]) of one size for the whole run, so a step's shapes never depend on the frame.
+LPIPS may be taken on a window around the person (``LossConfig.lpips_region: person``, docs/train.md):
+outside the mask the target is the plain background, which the L1 term already covers. A window is two
+index tensors (rows [h], cols [w]) of one size for the whole run, so a step's shapes never depend on the
+frame.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ class LossConfig:
     offset: float = 1.0  # weight of L_offset, which keeps the rectifier's offsets small (0: the paper's ablation)
     eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
-    lpips_region: str = "person"  # LPIPS on: "person" (a fixed-size window around the mask), "frame" (the whole image)
+    lpips_region: str = "frame"  # LPIPS on: "frame" (the whole image), "person" (a window around the mask: faster)
 
     def validate(self) -> "LossConfig":
         if self.lpips_region not in LPIPS_REGIONS:
