@@ -119,6 +119,8 @@ CASES = {
                                             _folder(t, "w/synth-seed0-32") / "keep.txt"),
     ("bench step", "--json"): lambda t: (["bench", "step", "--json", str(_file(t, "b.json"))], t / "b.json"),
     ("bench speed", "--json"): lambda t: (["bench", "speed", "--json", str(_file(t, "b.json"))], t / "b.json"),
+    ("bench render", "--json"): lambda t: (["bench", "render", str(t / "run"), "--json", str(_file(t, "b.json"))],
+                                           t / "b.json"),
     ("synth", "out"): lambda t: (["synth", str(_folder(t, "s"))], t / "s" / "keep.txt"),
     ("capture", "--out"): lambda t: (["capture", _frames(t), "--out", str(_folder(t, "c"))], t / "c" / "keep.txt"),
     ("batch", "--out"): lambda t: (["batch", _jobs(t), "--out", str(_folder(t, "root"))], t / "root" / "keep.txt"),
