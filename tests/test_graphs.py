@@ -140,7 +140,7 @@ def test_posing_a_trained_avatar_equals_the_plain_formula(trained_run, device):
             if a is not None:
                 torch.testing.assert_close(a, b, rtol=0, atol=0 if device == "cpu" else 1e-5)
         assert got.sh_degree == want.sh_degree
-    assert trained._poser.captures == (1 if device == "cuda" else 0), trained._poser.off_reason
+    assert trained.posing_graph.captures == (1 if device == "cuda" else 0), trained.posing_graph.off_reason
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -44,6 +44,7 @@ class TrainedAvatar:
     config: dict
     betas_error: str | None = None  # why the shape could not be read (raised when posing needs it)
     training_poses: PoseSequence | None = None
+    cuda_graphs: bool = True  # pose() replays body + avatar as one CUDA graph on a GPU (False: eagerly)
     _poser: Replay | None = field(default=None, repr=False)  # pose()'s replayed graph, made at its first call
     _checked: PoseSequence | None = field(default=None, repr=False)  # the sequence pose() last checked
 
@@ -108,11 +109,16 @@ class TrainedAvatar:
         one = poses.select(slice(i, i + 1)).to(self.device)
         shape = self._shape()
         if self._poser is None:
-            self._poser = Replay(self._pose_one)
+            self._poser = Replay(self._pose_one, enabled=self.cuda_graphs)
         out = self._poser(one.global_orient, one.body_pose, one.transl, *(() if shape is None else (shape,)))
         means, quats, scales, opacities, sh, *frames = (t.clone() for t in out) if keep else out
         return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh,
                            sh_degree=self.avatar.config.sh_degree, frames=frames[0] if frames else None)
+
+    @property
+    def posing_graph(self) -> Replay | None:
+        """:meth:`pose`'s Replay (whether it captured, why not), once pose() has run."""
+        return self._poser
 
     def _pose_one(self, global_orient, body_pose, transl, betas=None) -> tuple[torch.Tensor, ...]:
         """:meth:`pose` as a function of tensors ([1,3], [1,69], [1,3], [1,nb]) for :class:`Replay`."""

@@ -52,10 +52,7 @@ def measure(trained, seq, size: int, frames: int, warmup: int, graph: bool = Tru
     K = intrinsics(size, size, VideoOptions().fov_deg).to(dev)
     bg = torch.ones(3, device=dev)
     seq = seq.to(dev)
-    if not graph:
-        from rmavatar.utils.graphs import Replay
-
-        trained._poser = Replay(trained._pose_one, enabled=False)
+    trained.cuda_graphs = graph
 
     def draw(gs):
         rasterize(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view, K, size, size, background=bg)
@@ -85,7 +82,7 @@ def measure(trained, seq, size: int, frames: int, warmup: int, graph: bool = Tru
     split = {name: c.result()["wall_s"] for name, c in stages.items()}
     split["rectifier"] = max(0.0, split["rectifier"] - split["mesh_embedding"])
     f = frame.result()["wall_s"]
-    poser = trained._poser
+    poser = trained.posing_graph
     return {
         "size": size, "frames": frames, "gaussians": trained.avatar.num_gaussians,
         "frame_s": f, "fps": 1.0 / f, "posing_s": posing.result()["wall_s"], "raster_s": raster.result()["wall_s"],
