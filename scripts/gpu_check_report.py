@@ -75,8 +75,10 @@ def train_summary(log: str) -> dict | None:
                   r"(?:, last training PSNR ([\d.]+) dB)?", log.replace("\r", "\n"))
     if not m:
         return None
+    graphs = re.search(r"^(CUDA graphs.*)$", log.replace("\r", "\n"), re.M)
     return {"iterations": int(m[1]), "seconds": float(m[2]), "iterations_per_s": float(m[3]),
-            "gaussians": int(m[4]), "train_psnr": float(m[5]) if m[5] else None}
+            "gaussians": int(m[4]), "train_psnr": float(m[5]) if m[5] else None,
+            "cuda_graphs": graphs[1] if graphs else None}
 
 
 def memory(path: Path) -> dict | None:
@@ -157,6 +159,8 @@ def summary(r: dict) -> str:
     if t := r["train"]:
         lines.append(f"  training: {t['iterations']} iterations in {_f(t['seconds'], '.0f')} s "
                      f"({_f(t['iterations_per_s'], '.1f')} it/s), {t['gaussians']} Gaussians")
+        if t.get("cuda_graphs"):
+            lines.append(f"    {t['cuda_graphs']}")
     if m := r["train_gpu_memory"]:
         lines.append(f"  GPU memory during training (nvidia-smi): peak {m['peak_mib']} MiB (idle {m['idle_mib']})")
     for split in ("test", "novel_pose"):

@@ -240,7 +240,8 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
             raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
         graphs = {"used": trainer.graphs.enabled, "captures": trainer.graphs.captures,
-                  "capture_s": trainer.graphs.capture_s, "off_reason": trainer.graphs.off_reason}
+                  "capture_s": trainer.graphs.capture_s, "off_reason": trainer.graphs.off_reason,
+                  "failures": [list(f) for f in trainer.graphs.failures]}
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.
         t0 = time.perf_counter()

@@ -32,7 +32,7 @@ from rmavatar.avatar.frame import pose_frame
 from rmavatar.avatar.model import Avatar, AvatarExtras
 from rmavatar.train.losses import LossConfig, total_loss
 from rmavatar.utils.device import host_scalar
-from rmavatar.utils.graphs import WARMUP
+from rmavatar.utils.graphs import WARMUP, no_collection
 
 
 class PosedTensors(NamedTuple):
@@ -89,15 +89,21 @@ class _Losses:
 
 class StepGraphs:
     """The posing and the losses of ``avatar``'s training steps, eager or replayed as CUDA graphs
-    (module docstring). ``enabled``: use graphs where the avatar lives on a CUDA device. After a
-    capture fails, the run goes on eagerly and ``off_reason`` says why. ``captures`` counts the graphs
-    made, ``capture_s`` the seconds spent making them (warm-up runs included)."""
+    (module docstring). ``enabled``: use graphs where the avatar lives on a CUDA device. ``captures``
+    counts the graphs made, ``capture_s`` the seconds spent making them (warm-up runs included).
+
+    A capture that fails leaves that signature's steps eager and is tried again at the next signature
+    (the next density event); ``failures`` lists each failure's (piece, reason). After ``MAX_FAILURES``
+    the run goes on eagerly and ``off_reason`` says why."""
+
+    MAX_FAILURES = 3
 
     def __init__(self, avatar: Avatar, loss: LossConfig, enabled: bool = True):
         self.avatar, self.loss = avatar, loss
         self.enabled = enabled and avatar.means.device.type == "cuda"
         self.off_reason: str | None = None if self.enabled else "not a CUDA device" if enabled else "off"
         self.captures, self.capture_s = 0, 0.0
+        self.failures: list[tuple[str, str]] = []
         self._posing: tuple | None = None  # (signature, callable)
         self._losses: tuple | None = None
 
@@ -153,23 +159,33 @@ class StepGraphs:
         held = getattr(self, slot)
         if held is not None and held[0] == key:
             return held[1], held[2]
-        setattr(self, slot, None)  # free the old graphs' memory before capturing new ones
+        held = None
+        setattr(self, slot, None)  # free the old graphs before capturing new ones (no_collection)
         obj = make()
-        fn = self._capture(obj, inputs) if self.enabled else obj
-        setattr(self, slot, (key if self.enabled else eager_signature, fn, obj))
+        fn = self._capture(slot.strip("_"), obj, inputs) if self.enabled else obj
+        setattr(self, slot, (key, fn, obj))
         return fn, obj
 
-    def _capture(self, fn, inputs: tuple):
+    def _capture(self, piece: str, fn, inputs: tuple):
+        """``fn`` captured, or ``fn`` itself where capturing failed (recorded in ``failures``)."""
         # The sample inputs become the graph's input buffers, which every replay overwrites: copies, never
         # the caller's tensors (a cached frame would be overwritten by the next one).
         sample = tuple(t.detach().clone().requires_grad_(t.requires_grad) for t in inputs)
         started = time.perf_counter()
         try:
-            graphed = torch.cuda.make_graphed_callables(fn, sample, num_warmup_iters=WARMUP, allow_unused_input=True)
-        except Exception as exc:  # noqa: BLE001 - any failure to capture: the run goes on eagerly
-            self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
-            print(f"CUDA graphs off for this run (it continues without them): {self.off_reason}",
-                  file=sys.stderr, flush=True)
+            with no_collection():
+                graphed = torch.cuda.make_graphed_callables(fn, sample, num_warmup_iters=WARMUP,
+                                                            allow_unused_input=True)
+        except Exception as exc:  # noqa: BLE001 - any failure to capture: these steps run eagerly
+            reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            self.failures.append((piece, reason))
+            if len(self.failures) >= self.MAX_FAILURES:
+                self.enabled, self.off_reason = False, f"{len(self.failures)} captures failed, the last: {reason}"
+                print(f"CUDA graphs off for this run (it continues without them): {self.off_reason}",
+                      file=sys.stderr, flush=True)
+            else:
+                print(f"capturing the {piece} as a CUDA graph failed ({reason}); these steps run eagerly, "
+                      f"tried again when the step's shapes next change", file=sys.stderr, flush=True)
             torch.cuda.synchronize()
             return fn
         self.captures += 1

@@ -212,7 +212,8 @@ class Trainer:
                            self.pose_error)
             if self.progress and self.device.type == "cuda":
                 g = self.graphs
-                print(f"CUDA graphs: {g.captures} captured in {g.capture_s:.1f} s" if g.enabled
+                failed = f", {len(g.failures)} failed to capture (first: {g.failures[0][1]})" if g.failures else ""
+                print(f"CUDA graphs: {g.captures} captured in {g.capture_s:.1f} s{failed}" if g.enabled
                       else f"CUDA graphs off: {g.off_reason}")
         return TrainResult(self.iteration, interrupted, self.run_folder.path, report.history)
 

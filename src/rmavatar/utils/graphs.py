@@ -9,10 +9,30 @@ call: copy what you keep). Without CUDA it simply calls the function: one code p
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import sys
-from typing import Callable
+from typing import Callable, Iterator
 
 WARMUP = 2  # eager runs on a side stream before capturing (lazy initialisation stays out of the graph)
+
+
+@contextlib.contextmanager
+def no_collection() -> Iterator[None]:
+    """Around a capture: collect the garbage first, then no cyclic collection until it ends.
+
+    A graphed callable's autograd function is a class made per capture, so a replaced graph lives in
+    reference cycles; if the collector frees it in the middle of a capture, destroying that CUDA graph is
+    an operation a capturing stream does not permit and the new capture is invalidated. Collected here,
+    old graphs are destroyed before capturing starts."""
+    gc.collect()
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 class Replay:
@@ -49,15 +69,16 @@ class Replay:
         self._key = self._graph = self._inputs = self._outputs = None  # free the old graph first
         static = tuple(t.clone() for t in inputs)
         try:
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):
-                for _ in range(WARMUP):
-                    self.fn(*static)
-            torch.cuda.current_stream().wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                outputs = tuple(self.fn(*static))
+            with no_collection():
+                side = torch.cuda.Stream()
+                side.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(side):
+                    for _ in range(WARMUP):
+                        self.fn(*static)
+                torch.cuda.current_stream().wait_stream(side)
+                graph = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(graph):
+                    outputs = tuple(self.fn(*static))
         except Exception as exc:  # noqa: BLE001 - any failure to capture: plain calls from now on
             self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
             print(f"CUDA graph off (running without it): {self.off_reason}", file=sys.stderr, flush=True)
