@@ -7,9 +7,10 @@ Makes the subject (`rmavatar synth`, default 100 train + 30 test + 30 novel-pose
 turn (train + test frames) and its novel motion into MP4s, captures both with the true field of view
 (the turn, where the subject holds its A-pose, with ``--still``; with --no-still, without it, into
 ``WORK/captured_turn_free``), and reports the fitted body against the truth per split: mean 2D joint
-error (% of the body's height in the image), root-aligned 3D joint error (mm) over the 24 joints, and
-the mean 2D distance (px) of the body's vertices the true image shows from where the fitted body puts
-them (``visible_vertex_px``: what an avatar trained on the poses has to reconcile).
+error (% of the body's height in the image), root-aligned 3D joint error (mm) over the 24 joints, the
+IoU of the masks written with the true masks (``mask_iou``), and the mean 2D distance (px) of the
+body's vertices the true image shows from where the fitted body puts them (``visible_vertex_px``: what
+an avatar trained on the poses has to reconcile).
 Unless --skip-training, it then trains one avatar on the true poses and one on the captured turn with
 the demo's config (--iters, max 40k Gaussians, seed 0) and evaluates both on the synthetic dataset's
 test and novel_pose splits (true poses, the run's own body), and on test after fitting every frame's
@@ -101,13 +102,27 @@ def fit_errors(truth: Path, captured: Path, first: int, poses: Path | None = Non
         seen = np.stack([visible_vertices(vt[n], faces, Kt[n], w, h) for n in range(len(src))])
         d = np.linalg.norm(proj(vt, Kt) - proj(f.vertices.numpy(), np.broadcast_to(K, Kt.shape)), axis=-1)
         ev = (d * seen).sum(1) / seen.sum(1).clip(1)
+    iou = mask_ious(truth, captured, src)
     out = {}
     for split, idx in meta["splits"].items():
         out[split] = {"frames": len(idx), "joint_2d_percent_height": round(float(e2[idx].mean()), 3),
-                      "joint_3d_root_aligned_mm": round(float(e3[idx].mean()), 1)}
+                      "joint_3d_root_aligned_mm": round(float(e3[idx].mean()), 1),
+                      "mask_iou": round(float(iou[idx].mean()), 4)}
         if ev is not None:
             out[split]["visible_vertex_px"] = round(float(ev[idx].mean()), 3)
     return out
+
+
+def mask_ious(truth: Path, captured: Path, source: np.ndarray) -> np.ndarray:
+    """IoU [N] of each captured mask (> 0.5) with the true mask of its source frame (> 0.5)."""
+    from rmavatar.data.io import read_mask
+
+    out = []
+    for n, s in enumerate(source):
+        a = read_mask(captured / "masks" / f"{n:05d}.png") > 0.5
+        b = read_mask(truth / "masks" / f"{int(s):05d}.png") > 0.5
+        out.append((a & b).sum() / max((a | b).sum(), 1))
+    return np.asarray(out)
 
 
 def with_true_images(truth: Path, captured: Path, out: Path) -> Path:

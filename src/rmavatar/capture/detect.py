@@ -32,14 +32,15 @@ INSTALL_HINT = (
 @contextlib.contextmanager
 def quiet_native_stderr():
     """Hide what MediaPipe's C++ side prints on file descriptor 2 while loading (TFLite and absl
-    banners, a protobuf notice); it is printed after all if the block fails."""
+    banners); it is printed after all if the block fails with an error, not when it is interrupted
+    (Ctrl-C: the banners would bury the one line that says so)."""
     sys.stderr.flush()
     saved = os.dup(2)
     with tempfile.TemporaryFile(mode="w+b") as sink:
         os.dup2(sink.fileno(), 2)
         try:
             yield
-        except BaseException:
+        except Exception:
             os.dup2(saved, 2)
             sink.seek(0)
             sys.stderr.write(sink.read().decode(errors="replace"))
@@ -49,11 +50,42 @@ def quiet_native_stderr():
             os.close(saved)
 
 
+@contextlib.contextmanager
+def protobuf_prototypes():
+    """While MediaPipe's bindings load, give protobuf's MessageFactory the ``GetPrototype`` method that
+    protobuf 5 removed (it was the class of a descriptor's messages, ``GetMessageClass`` since).
+
+    Why: MediaPipe 0.10.21's C++ bindings (pybind11_protobuf) look the method up once, when they load;
+    without it they print ``AttributeError: 'MessageFactory' object has no attribute 'GetPrototype'``
+    and go on without their protobuf conversions (capture does not use them). The line was hidden while
+    loading and shown when a capture was interrupted there; with the method there is no line, and the
+    bindings load as on protobuf 4. The method is removed again after the import; an older protobuf
+    that has it is left alone, and any other error while importing is raised as before."""
+    try:
+        from google.protobuf import message_factory
+    except ImportError:
+        yield
+        return
+    factory = message_factory.MessageFactory
+    if hasattr(factory, "GetPrototype") or not hasattr(message_factory, "GetMessageClass"):
+        yield
+        return
+
+    def GetPrototype(self, descriptor):  # noqa: N802 (protobuf's name)
+        return message_factory.GetMessageClass(descriptor)
+
+    factory.GetPrototype = GetPrototype
+    try:
+        yield
+    finally:
+        del factory.GetPrototype
+
+
 def require_mediapipe():
     """Import MediaPipe's pose solution, or raise UserError with the install lines. Returns
     (the pose module, MediaPipe's version)."""
     try:
-        with quiet_native_stderr():
+        with quiet_native_stderr(), protobuf_prototypes():
             import mediapipe
             from mediapipe.python.solutions import pose
     except ImportError as exc:
@@ -112,11 +144,22 @@ class Detector:
         self.close()
 
     def __call__(self, image: np.ndarray) -> FrameDetection | None:
-        """uint8 RGB [H,W,3] -> the person's landmarks and mask, or None when no person is found."""
+        """uint8 RGB [H,W,3], the clip's next frame -> the person's landmarks and mask, or None when no
+        person is found. Video mode: the person is tracked from the previous frame's landmarks (the
+        person detector runs only when the track is lost), and landmarks and mask are smoothed."""
+        return self._process(self._pose, image)
+
+    def look(self, image: np.ndarray) -> FrameDetection | None:
+        """The same for a frame on its own (image mode: the person detector runs on it), for frames
+        looked at out of order."""
+        return self._process(self._single, image)
+
+    @staticmethod
+    def _process(graph, image: np.ndarray) -> FrameDetection | None:
         image = np.ascontiguousarray(image)
         h, w = image.shape[:2]
         with quiet_native_stderr():  # a one-off notice about non-square frames
-            r = self._pose.process(image)
+            r = graph.process(image)
         if r.pose_landmarks is None or r.segmentation_mask is None:
             return None
         lm = r.pose_landmarks.landmark
@@ -130,12 +173,15 @@ class Detector:
         """Whether the frame shows a second person: ``person`` (its mask grown by 3% of the frame) is
         painted over with the background's colour (the median of the frame's border) and MediaPipe
         looks again; a confident pose (torso visibility > 0.5) with a mask at least a third of the
-        first person's, lying outside the painted region, is another person."""
+        first person's, lying outside the painted region, is another person. ``person`` is MediaPipe's
+        result on this very ``image`` (its mask has the image's size)."""
         from scipy import ndimage
 
         mine = person.mask > 0.5
         grow = max(2, round(0.03 * max(mine.shape)))
-        region = ndimage.binary_dilation(mine, iterations=grow)
+        # grown by `grow` steps of 4-connected dilation: the pixels within that city-block distance (one
+        # pass, where iterated dilation took `grow` passes over the frame)
+        region = ndimage.distance_transform_cdt(~mine, metric="taxicab") <= grow if mine.any() else mine
         border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
         erased = np.array(image, copy=True)
         erased[region] = np.median(border, 0).astype(np.uint8)

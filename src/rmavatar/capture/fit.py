@@ -264,9 +264,17 @@ def outline_term(uv: torch.Tensor, outline: torch.Tensor, weight: torch.Tensor, 
 
 
 def nearest_points(outline: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Index [T,B] of the point of uv [T,P,2] nearest to each of outline [T,B,2]."""
+    """Index [T,B] of the point of uv [T,P,2] nearest to each of outline [T,B,2]. On the CPU a k-d tree
+    per frame: the dense distance matrix ([T,B,P], 61 million distances for 100 frames) took a third of
+    the fit's time; on a GPU the dense search is the fast one."""
     with torch.no_grad():
-        return torch.cdist(outline, uv).argmin(-1)
+        if uv.device.type != "cpu":
+            return torch.cdist(outline, uv).argmin(-1)
+        from scipy.spatial import cKDTree
+
+        o, u = outline.detach().numpy(), uv.detach().numpy()
+        index = np.stack([cKDTree(u[t]).query(o[t])[1] for t in range(len(o))])
+        return torch.as_tensor(index, dtype=torch.long)
 
 
 def mask_outline(masks: list[np.ndarray], scale: float, count: int = 400) -> tuple[np.ndarray, np.ndarray]:

@@ -1,16 +1,20 @@
 """``capture(INPUT, OUT, CaptureConfig)``: a video (or a folder of frames) of one person -> a native
 dataset with estimated poses, ready for ``rmavatar train``.
 
-Steps: decode (and subsample, resize) the frames; MediaPipe finds the person's landmarks and mask in
-each (the mask then snapped to the frame's colour edges, :mod:`rmavatar.capture.matte`); frames
-without a person, or with a second one, are dropped and reported; the body is fitted to all frames at
-once (:mod:`rmavatar.capture.fit`); the dataset is written atomically with a contact sheet of the fit.
-Any failure leaves nothing behind: frames wait in a temporary folder beside OUT, and OUT appears only
-when everything is written.
+Steps: a few frames spread over the clip are looked at first, and a clip with no person or two in
+them is refused before the full pass; then every frame is decoded (subsampled, resized), MediaPipe
+finds the person's landmarks and mask in it at a working size (the mask then brought to the frame's
+size and snapped to its colour edges, :mod:`rmavatar.capture.matte`); frames without a person, or with
+a second one, are dropped and reported; each frame kept is written once, as the dataset's own files;
+the body is fitted to all frames at once (:mod:`rmavatar.capture.fit`); the dataset is completed with
+a contact sheet of the fit. Any failure leaves nothing behind: frames wait in a temporary folder
+beside OUT, and OUT appears only when everything is written. The time of each stage is measured and
+returned (``rmavatar bench capture`` reports it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import tempfile
@@ -33,6 +37,19 @@ OTHER_PERSON_EVERY = 5  # look for a second person in every 5th frame (it costs 
 MAX_OTHER_FRAMES = 0.1  # more of the frames looked at than this with a second person: refused
 MIN_PERSON_FRAMES = 0.5  # fewer frames than this with a person: the clip is refused
 FIT_SIDE = 256  # longer side of the masks the silhouette term compares with
+# Before the full pass, this many frames spread over the clip are looked at, so that a clip with no one
+# or two people in it is refused in seconds, not after minutes of decoding.
+SAMPLE_FRAMES = 8
+# ... and a second person must show in at least this many of them (and in more than MAX_OTHER_FRAMES):
+# one frame with a passer-by leaves the decision to the full pass, which drops such frames.
+MIN_OTHER_LOOKED = 2
+LOOK_SIDE = 640  # longer side of the frames looked at (MediaPipe's person detector sees 224x224 anyway)
+# MediaPipe sees each frame scaled so that the person is about this tall: its landmark and segmentation
+# model sees a 256x256 crop around the person, so more pixels only cost time (MediaPipe scales the
+# frame and makes its mask at the frame's size), while fewer make that crop blurrier: on the synthetic
+# 1080p turn 640 fitted as well as the full frame, 384 and 512 a little worse (docs/capture.md, "Speed").
+WORK_HEIGHT = 640
+WRITE_QUEUE = 4  # frames waiting for the writer thread, at most (each a full-size image and mask)
 
 
 @dataclass
@@ -40,7 +57,8 @@ class CaptureConfig:
     """What ``rmavatar capture`` does. body: "anny", "anny:PRESET" or "smpl:PATH"; fov: horizontal
     field of view in degrees, or focal: pixels (of the output frames), else DEFAULT_FOCAL_LONG_SIDE;
     fps: keep at most this many frames per second (None: all); size: longer side of the frames
-    written (None: the source's); test_fraction: the tail of the clip held out as the test split;
+    written (None: the source's); frames: only the first this many frames kept (None: all);
+    test_fraction: the tail of the clip held out as the test split;
     device: "auto", "cpu", "cuda"."""
 
     body: str = "anny"  # body model fitted: "anny", "anny:PRESET" or "smpl:PATH"
@@ -48,6 +66,7 @@ class CaptureConfig:
     focal: float | None = None  # focal length in pixels of the output frames (None: see fov)
     fps: float | None = None  # keep at most this many frames per second (None: every frame)
     size: int | None = None  # longer side in pixels of the frames written (None: the source's)
+    frames: int | None = None  # use only the first this many of the frames kept (None: all)
     test_fraction: float = 0.2  # tail of the clip held out as the test split
     device: str = "auto"  # where the fit runs: "auto", "cpu" or "cuda"
     fit: BodyFitConfig = field(default_factory=BodyFitConfig)  # the body fit's weights and schedule
@@ -63,6 +82,8 @@ class CaptureConfig:
             raise UserError(f"--focal must be a positive number of pixels, got {self.focal:g}")
         if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
             raise UserError(f"--fps must be positive, got {self.fps:g}")
+        if self.frames is not None and self.frames < 2:
+            raise UserError(f"--frames must be at least 2 (a clip to fit), got {self.frames}")
         if self.size is not None and self.size < MIN_SIZE:
             raise UserError(f"--size must be at least {MIN_SIZE} pixels, got {self.size}")
         if not 0 < self.test_fraction < 1:
@@ -102,6 +123,48 @@ def check_out(out: Path, source: Path, overwrite: bool = False) -> None:
     check_output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES)
 
 
+STAGES = ("decode", "landmarks", "masks", "fit", "write")
+
+
+class _Stages:
+    """Seconds spent per stage (STAGES), wall clock and CPU time of this process (MediaPipe's and
+    torch's threads included; ffmpeg's decoding runs in a process of its own)."""
+
+    def __init__(self):
+        self.wall = dict.fromkeys(STAGES, 0.0)
+        self.cpu = dict.fromkeys(STAGES, 0.0)
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        t, c = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[stage] += time.perf_counter() - t
+            self.cpu[stage] += time.process_time() - c
+
+    def frames(self, frames):
+        """``frames`` (an iterator) with the time spent taking each item counted as decoding."""
+        it = iter(frames)
+        while True:
+            with self("decode"):
+                item = next(it, None)
+            if item is None:
+                return
+            yield item
+
+
+@dataclass
+class _Look:
+    """The frames looked at before the full pass (source indices), those without a person and those
+    with another one, and the person's height (pixels of the output frames) in each frame with one."""
+
+    looked: list[int] = field(default_factory=list)
+    no_person: list[int] = field(default_factory=list)
+    other_person: list[int] = field(default_factory=list)
+    heights: list[float] = field(default_factory=list)
+
+
 @dataclass
 class _Clip:
     """The frames with a person, as detected: source index [T], keypoints [T,33,2], visibility [T,33],
@@ -116,49 +179,191 @@ class _Clip:
     no_person: list[int] = field(default_factory=list)
     other_person: list[int] = field(default_factory=list)
     decoded: int = 0
+    work_size: tuple[int, int] = (0, 0)  # (width, height) of the frames MediaPipe saw
+    look: _Look = field(default_factory=_Look)
 
 
-def _detect(source, cfg: CaptureConfig, scratch: Path, progress: bool) -> tuple[_Clip, tuple[int, int]]:
-    """Decode, detect, and keep each frame with a person as PNGs in ``scratch``."""
-    from tqdm import tqdm
+def _scaled(size: tuple[int, int], longer: float) -> tuple[int, int]:
+    """(width, height) scaled so that the longer side is at most ``longer`` (never enlarged)."""
+    from rmavatar.data.dataset import target_size
+
+    return size if max(size) <= longer else target_size(*size, int(round(longer)))
+
+
+def _look(source, cfg: CaptureConfig, kept: list[int] | None, detect, size: tuple[int, int],
+          stages: _Stages) -> _Look:
+    """Before the full pass: SAMPLE_FRAMES frames spread over the clip (over ``kept``, the source
+    frames the full pass will read; None: unknown), each looked at on its own (MediaPipe's image mode)
+    at most LOOK_SIDE pixels on the longer side, for a person and for another one."""
+    import itertools
+
+    from rmavatar.capture.frames import frames_at, read_frames, shrink
+
+    if kept is None:  # a video of unknown length: its first frames
+        frames = itertools.islice(read_frames(source, cfg.size, cfg.fps), SAMPLE_FRAMES)
+    else:
+        picks = np.unique(np.linspace(0, len(kept) - 1, min(SAMPLE_FRAMES, len(kept))).round().astype(int))
+        frames = frames_at(source, [kept[j] for j in picks], cfg.size)
+    look = _Look()
+    small = _scaled(size, LOOK_SIDE)
+    for i, image in stages.frames(frames):
+        look.looked.append(i)
+        with stages("landmarks"):
+            view = shrink(image, *small)
+            det = detect.look(view)
+            rows = np.nonzero((det.mask > 0.5).any(1))[0] if det is not None else []
+            if len(rows) == 0:
+                look.no_person.append(i)
+                continue
+            if detect.another_person(view, det):
+                look.other_person.append(i)
+            look.heights.append(float(rows[-1] - rows[0] + 1) * size[1] / small[1])
+    return look
+
+
+def _check_look(look: _Look, source) -> None:
+    """The clip refused from the frames looked at, with the messages of the full pass's checks."""
+    name = source.path
+    n = len(look.looked)
+    if n == 0:
+        raise UserError(f"input {name} has no frames")
+    others = len(look.other_person)
+    if others >= MIN_OTHER_LOOKED and others > MAX_OTHER_FRAMES * n:
+        raise UserError(f"input {name} shows more than one person (in {others} of the {n} frames looked at, "
+                        f"spread over the clip, the first at frame {look.other_person[0]}); rmavatar capture "
+                        f"needs exactly one person in view")
+    if n - len(look.no_person) < MIN_PERSON_FRAMES * n:
+        raise UserError(f"input {name}: no person found in {len(look.no_person)} of {n} frames looked at "
+                        f"(spread over the clip); the whole body of one person must be in view in most frames")
+
+
+def _work_size(look: _Look, size: tuple[int, int]) -> tuple[int, int]:
+    """The size of the frames MediaPipe sees in the full pass: the output frames scaled so that the
+    person is about WORK_HEIGHT pixels tall (never enlarged)."""
+    if not look.heights:
+        return size
+    scale = min(1.0, WORK_HEIGHT / float(np.median(look.heights)))
+    return _scaled(size, max(size) * scale)
+
+
+def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, stages: _Stages, bar
+            ) -> tuple[_Clip, tuple[int, int]]:
+    """Look at a few frames first (:func:`_look`, the clip refused at once when they show no person or
+    two), then decode and detect every frame, and write each frame with a person, as the dataset's frame
+    files, into ``scratch`` (its images/ and masks/)."""
+    import itertools
 
     from rmavatar.capture.detect import Detector
-    from rmavatar.capture.frames import output_size, read_frames
+    from rmavatar.capture.frames import output_size, read_frames, shrink
     from rmavatar.capture.matte import refine_mask
     from rmavatar.data.dataset import target_size
-    from rmavatar.data.io import resample, to_uint8, write_png
+    from rmavatar.data.io import resample, to_uint8
 
     size = output_size(source, cfg.size)
     small = target_size(*size, min(FIT_SIDE, max(size)))
-    total = None
-    if source.count:
-        total = source.count if cfg.fps is None or cfg.fps >= source.fps else \
-            int(math.ceil(source.count * cfg.fps / source.fps))
     clip = _Clip()
-    with Detector() as detect, tqdm(total=total, desc=f"capture: finding the person in {source.path.name}",
-                                    unit="frame", disable=not progress) as bar:
-        for i, image in read_frames(source, cfg.size, cfg.fps):
-            clip.decoded += 1
-            bar.update(1)
-            det = detect(image)
-            rows = np.nonzero((det.mask > 0.5).any(1))[0] if det is not None else []
-            if len(rows) == 0:  # no pose, or a pose without a person's mask
-                clip.no_person.append(i)
-                continue
-            if clip.decoded % OTHER_PERSON_EVERY == 1 and detect.another_person(image, det):
-                clip.other_person.append(i)
-                continue
-            n = len(clip.index)
-            mask = refine_mask(image, det.mask)
-            write_png(scratch / f"image{n:06d}.png", image)
-            write_png(scratch / f"mask{n:06d}.png", to_uint8(mask, f"mask of frame {i}"))
-            clip.index.append(i)
-            clip.keypoints.append(det.keypoints)
-            clip.visibility.append(det.visibility)
-            clip.world.append(det.world)
-            clip.small_masks.append(resample(mask, *small) > 0.5)
-            clip.heights.append(float(rows[-1] - rows[0] + 1))
+    writer = _FrameWriter(scratch)
+    try:
+        with Detector() as detect:
+            bar.set_description(f"capture: looking at {SAMPLE_FRAMES} frames of {source.path.name}")
+            clip.look = _look(source, cfg, kept, detect, size, stages)
+            _check_look(clip.look, source)
+            work = clip.work_size = _work_size(clip.look, size)
+            bar.set_description(f"capture: finding the person in {source.path.name} ({work[0]}x{work[1]})")
+            for i, image in stages.frames(itertools.islice(read_frames(source, cfg.size, cfg.fps), cfg.frames)):
+                clip.decoded += 1
+                bar.update(1)
+                with stages("landmarks"):
+                    view = shrink(image, *work)
+                    det = detect(view)
+                    rows = np.nonzero((det.mask > 0.5).any(1))[0] if det is not None else []
+                    if len(rows) == 0:  # no pose, or a pose without a person's mask
+                        clip.no_person.append(i)
+                        continue
+                    if clip.decoded % OTHER_PERSON_EVERY == 1 and detect.another_person(view, det):
+                        clip.other_person.append(i)
+                        continue
+                with stages("masks"):
+                    # MediaPipe's mask, made at the working size, brought to the output size, then snapped
+                    # to the output frame's own colour edges
+                    mask = refine_mask(image, resample(det.mask, *size))
+                    clip.small_masks.append(resample(mask, *small) > 0.5)
+                with stages("write"):
+                    writer.put(len(clip.index), image, to_uint8(mask, f"mask of frame {i}"))
+                clip.index.append(i)
+                clip.keypoints.append(det.keypoints * np.array([size[0] / work[0], size[1] / work[1]], np.float32))
+                clip.visibility.append(det.visibility)
+                clip.world.append(det.world)
+                clip.heights.append(float(rows[-1] - rows[0] + 1) * size[1] / work[1])
+    finally:
+        with stages("write"):
+            writer.close()
     return clip, size
+
+
+class _FrameWriter:
+    """Writes dataset frame n's image [H,W,3] and mask [H,W] (uint8) as the dataset's own files
+    (``images/{n:05d}.png``, ``masks/{n:05d}.png`` in ``folder``), once, in a thread of its own: OpenCV's
+    encoder releases the GIL, so a frame is encoded while MediaPipe looks at the next ones. At most
+    WRITE_QUEUE frames wait (memory); ``put`` blocks beyond that, and re-raises the writer's error."""
+
+    def __init__(self, folder: Path):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.folder = folder
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="capture-writer")
+        self.pending = []
+
+    def put(self, n: int, image: np.ndarray, mask: np.ndarray) -> None:
+        while len(self.pending) >= WRITE_QUEUE:
+            self.pending.pop(0).result()
+        self.pending.append(self.pool.submit(self._write, n, image, mask))
+
+    def _write(self, n: int, image: np.ndarray, mask: np.ndarray) -> None:
+        write_frame_png(self.folder / "images" / f"{n:05d}.png", image)
+        write_frame_png(self.folder / "masks" / f"{n:05d}.png", mask)
+
+    def close(self) -> None:
+        """Wait for every frame (their errors raised here); the thread ends."""
+        try:
+            for f in self.pending:
+                f.result()
+        finally:
+            self.pending = []
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def write_frame_png(path: Path, array: np.ndarray) -> None:
+    """uint8 [H,W,3] RGB or [H,W] grey as an 8-bit PNG, by OpenCV with zlib level 1 and the 'up' row
+    filter: about as small as Pillow's level 3 on video frames, in about a third of its time (Pillow's
+    encoder was most of a capture's writing; docs/capture.md)."""
+    import cv2
+
+    if array.ndim == 3:
+        array = array[..., ::-1]  # OpenCV writes BGR
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(array), params)
+    if not ok:
+        raise UserError(f"cannot encode {path} as PNG")
+    try:
+        path.write_bytes(data.tobytes())
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc}") from None
+
+
+def _write_dataset(tmp: Path, frames: Path, meta, camera, params: dict) -> None:
+    """The native dataset in ``tmp`` (see :mod:`rmavatar.data.native`) around the frames already written
+    in ``frames`` (moved in, not encoded again): cameras.npz, smpl.npz and meta.yaml as ``write_native``
+    writes them, then opened by the format's own reader, which checks every key and frame file."""
+    import os
+
+    from rmavatar.data import native
+
+    for sub in ("images", "masks"):
+        os.replace(frames / sub, tmp / sub)
+    native.write_tables(tmp, meta, camera.K, camera.viewmat, params, (camera.width, camera.height), meta.splits,
+                        "capture")
+    native.open_native(tmp)
 
 
 def _check_clip(clip: _Clip, source) -> None:
@@ -214,43 +419,50 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
-    summary (frames kept and dropped, timings, the body, the camera, the fit's final losses)."""
+    summary: frames kept and dropped, the frames looked at first, the size MediaPipe saw, seconds per
+    stage (``seconds``: wall clock per STAGES item; ``cpu_seconds``: this process's CPU time), the
+    whole call's ``total_seconds`` and ``seconds_per_frame`` (per frame decoded), the body, the camera,
+    the fit's final losses."""
+    from tqdm import tqdm
+
     from rmavatar.body import load_body_model
     from rmavatar.capture.fit import fit_body
-    from rmavatar.capture.frames import open_source
+    from rmavatar.capture.frames import kept_frames, open_source
     from rmavatar.capture.sheet import contact_sheet
-    from rmavatar.data import Camera, NativeMeta, write_native
-    from rmavatar.data.io import read_image, read_mask
+    from rmavatar.data import Camera, NativeMeta
     from rmavatar.utils import resolve_device
     from rmavatar.utils.files import tmp_prefix
     from rmavatar.utils.outputs import output_folder
 
+    start = time.perf_counter()
     cfg = cfg or CaptureConfig()
     cfg.check()
     out = Path(out)
     source = open_source(input_path)
     check_out(out, source.path, overwrite)
+    kept = kept_frames(source, cfg.fps)
+    if kept is not None:  # the clip's length is known: a split no frame count up to it can fill is refused now
+        kept = kept[:cfg.frames]
+        _splits(len(kept), cfg.test_fraction, source.path, "in all")
     device = resolve_device(cfg.device)
     body = load_body_model(cfg.body).to(device)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
-    if source.count:  # the clip's length is known: a split no frame count up to it can fill is refused now
-        total = source.count if cfg.fps is None or cfg.fps >= source.fps else \
-            int(math.ceil(source.count * cfg.fps / source.fps))
-        _splits(total, cfg.test_fraction, source.path, "in all")
-    timings = {}
+    stages = _Stages()
     scratch = Path(tempfile.mkdtemp(prefix=tmp_prefix(out.name + ".frames"), dir=parent))
+    for sub in ("images", "masks"):
+        (scratch / sub).mkdir()
+    bar = tqdm(total=len(kept) if kept is not None else None, unit="frame", disable=not progress)
     try:
-        t0 = time.perf_counter()
-        clip, size = _detect(source, cfg, scratch, progress)
-        timings["detect_seconds"] = time.perf_counter() - t0
+        with bar:
+            clip, size = _detect(source, cfg, kept, scratch, stages, bar)
         _check_clip(clip, source)
         n = len(clip.index)
         splits = _splits(n, cfg.test_fraction, source.path, "with a person")  # before the fit's minutes
         K = intrinsics(*size, fov=cfg.fov, focal=cfg.focal)
-        obs = _observations(clip, K, size, device)
-        result = fit_body(body, obs, cfg.fit, progress=progress)
-        timings["fit_seconds"] = result.seconds
+        with stages("fit"):
+            obs = _observations(clip, K, size, device)
+            result = fit_body(body, obs, cfg.fit, progress=progress)
         out_fps = source.fps if cfg.fps is None else min(cfg.fps, source.fps)
         spec = getattr(body, "spec", cfg.body)
         preset = spec.partition(":")[2] if spec.startswith("anny:") else None
@@ -259,29 +471,33 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
             name=source.path.stem, splits=splits, fps=out_fps, gender=gender, body=spec, poses_estimated=True,
             extra={"generator": "rmavatar capture", "source": str(source.path.resolve()),
                    "source_fps": source.fps, "frames_decoded": clip.decoded,
+                   # dataset frame i (images/{i:05d}.png) is the source's frame source_frames[i]: the video's
+                   # 0-based frame number, as on the contact sheet and in capture.npz's source_index
+                   "source_frames": list(clip.index),
                    "frames_without_person": clip.no_person, "frames_with_another_person": clip.other_person,
+                   "frames_looked_at_first": clip.look.looked,
+                   "detection_size": list(clip.work_size),
                    "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": float(K[0, 0])},
                    "fit": asdict(cfg.fit), "losses": result.losses},
         )  # fmt: skip
         params = {"betas": result.betas, "global_orient": result.global_orient, "body_pose": result.body_pose,
                   "transl": result.transl}
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
-        t0 = time.perf_counter()
-        with output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
-            images = (read_image(scratch / f"image{i:06d}.png") for i in range(n))
-            masks = (read_mask(scratch / f"mask{i:06d}.png") for i in range(n))
-            write_native(tmp, meta, camera, params, images, masks, progress=progress)
+        with stages("write"), \
+                output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
+            _write_dataset(tmp, scratch, meta, camera, params)
             np.savez(tmp / "capture.npz", source_index=np.asarray(clip.index),
                      keypoints=np.stack(clip.keypoints), visibility=np.stack(clip.visibility),
                      world=np.stack(clip.world))  # fmt: skip
-            contact_sheet(tmp / "contact_sheet.png", body, camera, params, splits, clip, scratch)
-        timings["write_seconds"] = time.perf_counter() - t0
+            contact_sheet(tmp / "contact_sheet.png", body, camera, params, splits, clip, tmp / "images")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    total = sum(timings.values())
+    total = time.perf_counter() - start
     return {
         "out": str(out), "frames": {k: len(v) for k, v in splits.items()}, "decoded": clip.decoded,
-        "no_person": clip.no_person, "other_person": clip.other_person, "body": spec,
+        "no_person": clip.no_person, "other_person": clip.other_person, "looked_at": clip.look.looked,
+        "detection_size": list(clip.work_size), "body": spec,
         "camera": {"fx": float(K[0, 0]), "width": size[0], "height": size[1]},
-        "losses": result.losses, "seconds": timings, "seconds_per_frame": total / max(clip.decoded, 1),
+        "losses": result.losses, "seconds": dict(stages.wall), "cpu_seconds": dict(stages.cpu),
+        "total_seconds": total, "seconds_per_frame": total / max(clip.decoded, 1),
     }

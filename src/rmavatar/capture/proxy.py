@@ -91,6 +91,22 @@ class BodyProxy:
         B = global_orient.shape[0]
         rest_joints, rest_points = self.rest(betas)
         R = axis_angle_to_matrix(torch.cat([global_orient, body_pose], 1).reshape(B, 24, 3))
-        points, joints, T = lbs(rest_points, rest_joints, SMPL_PARENTS, R, self.weights)
+        _, joints, T = lbs(rest_joints[:, :1], rest_joints, SMPL_PARENTS, R, self.weights[:1])
+        # point p = sum_j w_pj T_j [rest_p; 1] = sum_(j,c) T_j[:, c] (w_pj [rest_p; 1]_c): one product of the
+        # transforms [B*3, 24*4] with a [24*4, P] table, where blending a 3x4 matrix per point and frame
+        # first made [B,P,3,4] arrays (and their gradients) that were most of the fit's time
+        table = self._table(betas, rest_points)
+        points = (T[..., :3, :].permute(0, 2, 1, 3).reshape(B * 3, -1) @ table).reshape(B, 3, -1).transpose(1, 2)
         t = transl[:, None]
         return joints + t, T[..., :3, :3], points + t
+
+    def _table(self, betas, rest_points: torch.Tensor) -> torch.Tensor:
+        """w_pj [rest_p; 1]_c as a [24*4, P] table (cached for the rest shape, betas None)."""
+        if betas is None and getattr(self, "_cached_table", None) is not None:
+            return self._cached_table
+        points = rest_points[0]
+        homo = torch.cat([points, torch.ones_like(points[:, :1])], 1)  # [P,4]
+        table = (self.weights[:, :, None] * homo[:, None, :]).reshape(len(points), -1).T.contiguous()
+        if betas is None:
+            self._cached_table = table.detach()
+        return table

@@ -15,6 +15,15 @@ BODY_ALPHA = 0.5
 BODY_COLOUR = np.array([1.0, 0.6, 0.15])  # orange: stands out on most clothes and skin
 
 
+def body_silhouette(vertices_cam: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, height: int
+                    ) -> np.ndarray:
+    """Where the mesh (camera-frame vertices [V,3], faces [F,3]) covers a ``width`` x ``height`` image
+    seen by K [3,3] (one sample per pixel, at its centre): [height,width] bool."""
+    from rmavatar.data.synth.raster import rasterize
+
+    return rasterize(vertices_cam, faces, K, width, height, ss=1).face_id >= 0
+
+
 def body_overlay(image: np.ndarray, vertices_cam: np.ndarray, faces: np.ndarray, K: np.ndarray) -> np.ndarray:
     """image [H,W,3] float 0..1 with the mesh (camera-frame vertices [V,3], faces [F,3]) drawn over it,
     z-buffered, shaded by the angle to the viewer, half transparent. Returns [H,W,3] float."""
@@ -35,12 +44,18 @@ def body_overlay(image: np.ndarray, vertices_cam: np.ndarray, faces: np.ndarray,
     return image * (1 - a) + colour * a
 
 
-def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, scratch: Path,
-                  count: int = 12) -> None:
+def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, images: Path,
+                  count: int = 12) -> list[dict]:
     """Write ``count`` frames spread over the clip: the fitted body over the frame, MediaPipe's
-    landmarks (green dots) and the body's landmark points joined as a skeleton (red)."""
+    landmarks (green dots) and the body's landmark points joined as a skeleton (red). ``images``: the
+    dataset's images folder (frame i is ``{i:05d}.png``). Each tile is labelled with its split and the
+    video's 0-based frame number (``clip.index``, capture.npz's ``source_index``); the same list is
+    stored in the PNG as the text chunk ``frames`` (JSON) and returned: [{"frame": dataset frame,
+    "video_frame": ..., "split": ...}]."""
+    import json
+
     import torch
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw, PngImagePlugin
 
     from rmavatar.capture.fit import project
     from rmavatar.capture.landmarks import body_landmarks, joint_rotations
@@ -71,7 +86,7 @@ def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, sc
     draw = ImageDraw.Draw(sheet)
     pos = {k: i for i, k in enumerate(USED)}
     for slot, i in enumerate(picks):
-        image = resample(read_image(scratch / f"image{i:06d}.png"), tw, th)
+        image = resample(read_image(images / f"{i:05d}.png"), tw, th)
         tile = body_overlay(image, vertices[slot], faces, K)
         x0, y0 = (slot % PER_ROW) * tw, (slot // PER_ROW) * (th + pad)
         sheet.paste(Image.fromarray((np.clip(tile, 0, 1) * 255 + 0.5).astype(np.uint8)), (x0, y0 + pad))
@@ -83,5 +98,9 @@ def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, sc
             u, v = clip.keypoints[i][k] * scale + off
             r = 2 if clip.visibility[i][k] > 0.5 else 1
             draw.ellipse([u - r, v - r, u + r, v + r], fill=(20, 200, 60))
-        draw.text((x0 + 3, y0 + 1), f"{split_of.get(i, '?')} #{clip.index[i]}", fill=(0, 0, 0))
-    sheet.save(path)
+        draw.text((x0 + 3, y0 + 1), f"{split_of.get(i, '?')}, video frame {clip.index[i]}", fill=(0, 0, 0))
+    labels = [{"frame": int(i), "video_frame": int(clip.index[i]), "split": split_of.get(i, "?")} for i in picks]
+    info = PngImagePlugin.PngInfo()
+    info.add_text("frames", json.dumps(labels))
+    sheet.save(path, pnginfo=info)
+    return labels

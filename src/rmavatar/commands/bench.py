@@ -21,6 +21,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "avatar": ("rmavatar.bench.avatar", "the avatar's forward+backward (posing + rectifier): float32, bfloat16, no rectifier"),
     "render": ("rmavatar.bench.render", "frames per second of a trained avatar (posing + rectifier as one CUDA "
                "graph on a GPU) and the split by stage"),
+    "capture": ("rmavatar.bench.capture", "rmavatar capture on a clip: seconds per frame by stage (decode, landmarks, "
+                "masks, fit, write), frames with a person, landmarks seen, silhouette IoU of the fitted body"),
 }
 
 
@@ -167,5 +169,33 @@ def _render_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
 
 
+def _capture_options(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = """examples:
+  rmavatar bench capture --json capture_synth1080.json       # a synthetic 1920x1080 turn with true poses
+  rmavatar bench capture me.mp4 --size 512 --frames 100 --json capture_me.json
+"""
+    parser.add_argument("input", metavar="INPUT", nargs="?", default=None,
+                        help="a video or a folder of frames of one person (default: a synthetic 1920x1080 clip "
+                             "of the default subject turning, made in --work, whose true poses are known)")
+    parser.add_argument("--size", type=int, default=None,
+                        help="longer side of the frames captured, as rmavatar capture --size (default: the clip's)")
+    parser.add_argument("--fps", type=float, default=None, metavar="N",
+                        help="keep at most N frames per second, as rmavatar capture")
+    parser.add_argument("--frames", type=int, default=None, metavar="N",
+                        help="use only the first N frames (after --fps; default: all)")
+    parser.add_argument("--still", action="store_true",
+                        help="capture with --still (the person holds one pose; always on for the synthetic turn)")
+    parser.add_argument("--fov", type=float, default=None, metavar="DEGREES",
+                        help="the camera's horizontal field of view (default: the synthetic clip's true one, "
+                             "else rmavatar capture's default)")
+    parser.add_argument("--device", default="auto", help="where the fit runs: auto, cpu, cuda")
+    parser.add_argument("--work", metavar="DIR", default=None,
+                        help="keep the synthetic clip and the captured dataset here and reuse the clip "
+                             "(default: a temporary folder, removed at the end)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+
+
 _OPTIONS = {"raster": _raster_options, "quality": _quality_options, "step": _step_options, "speed": _speed_options,
-            "avatar": _avatar_options, "render": _render_options}
+            "avatar": _avatar_options, "render": _render_options, "capture": _capture_options}

@@ -82,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"dropped {dropped} of {s['decoded']} frames: {len(s['no_person'])} without a person "
               f"{s['no_person'][:10]}, {len(s['other_person'])} with another person {s['other_person'][:10]}")
     t = s["seconds"]
-    print(f"{s['seconds_per_frame']:.2f} s per frame (finding the person {t['detect_seconds']:.1f} s, "
-          f"fitting {t['fit_seconds']:.1f} s, writing {t['write_seconds']:.1f} s)")
+    w, h = s["detection_size"]
+    print(f"{s['seconds_per_frame']:.2f} s per frame, {s['total_seconds']:.1f} s in all (decoding {t['decode']:.1f} s, "
+          f"landmarks {t['landmarks']:.1f} s at {w}x{h}, masks {t['masks']:.1f} s, fitting {t['fit']:.1f} s, "
+          f"writing {t['write']:.1f} s)")
     print(f"look at {s['out']}/contact_sheet.png, then: rmavatar train {s['out']} --out runs/NAME")
     return 0

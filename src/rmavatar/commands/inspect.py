@@ -49,8 +49,19 @@ def _print(summary: dict) -> None:
     extra = f" (source {sw}x{sh})" if (sw, sh) != (w, h) else ""
     print(f"  gender {summary['gender']}, body {summary['body']}, fps {summary['fps']}, image {w}x{h}{extra}, "
           f"poses {summary['pose_source']}")
+    video = summary.get("video_frames")
     for s, v in summary["splits"].items():
-        print(f"  {s:<11} {v['frames']:>5} frames  (source frames {v['first']}..{v['last']})")
+        if video is not None:
+            vf = video["splits"][s]
+            print(f"  {s:<11} {v['frames']:>5} frames  (dataset frames {v['first']}..{v['last']} = video frames "
+                  f"{vf['first']}..{vf['last']})")
+        else:
+            which = "dataset" if summary["kind"] == "native" else "source"
+            print(f"  {s:<11} {v['frames']:>5} frames  ({which} frames {v['first']}..{v['last']})")
+    if video is not None:
+        print(f"  frames      video frames are the 0-based frame numbers in {video['source']} of the dataset's "
+              f"frames (meta.yaml extra.source_frames), the numbers on contact_sheet.png and in capture.npz's "
+              f"source_index")
     c = summary["camera"]
     print(f"  camera      fx {c['fx']} fy {c['fy']} cx {c['cx']} cy {c['cy']}, centre {c['position']} m, "
           f"{c['distinct_cameras']} distinct camera(s)")
@@ -61,6 +72,24 @@ def _print(summary: dict) -> None:
         print(f"  {'':<11} global_orient min {g['min']} max {g['max']} deg; body_pose |max| "
               f"{p['body_pose_abs_max_deg']} deg, |mean| {p['body_pose_abs_mean_deg']} deg; "
               f"{p['distinct_betas']} distinct betas")
+
+
+def _video_frames(ds) -> dict | None:
+    """For a dataset ``rmavatar capture`` wrote: which frame of the video each dataset frame is (meta.yaml's
+    extra.source_frames, the video's 0-based frame numbers), per split; None for other datasets."""
+    from rmavatar.data.native import read_meta
+
+    doc = read_meta(ds.root)
+    frames = doc["extra"].get("source_frames")
+    if not isinstance(frames, list) or len(frames) != doc["num_frames"]:
+        return None
+    return {
+        "source": doc["extra"].get("source", "the video"),
+        "numbering": "0-based frame number in the video (a folder of images: in its sorted file list)",
+        "frames": frames,
+        "splits": {s: {"first": frames[idx[0]], "last": frames[idx[-1]], "frames": [frames[i] for i in idx]}
+                   for s, idx in ds.splits.items()},
+    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -84,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
     options = {"body": args.body} if args.body and kind == "zju" else {}
     ds = load_dataset(args.data, size=args.size, cache_mb=64, **options)
     summary = summarize(ds)
+    if ds.kind == "native":
+        video = _video_frames(ds)
+        if video is not None:
+            summary["video_frames"] = video
     if args.check:
         summary["checked"] = check_dataset(ds, progress=True)
     if args.json == "-":

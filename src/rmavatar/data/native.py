@@ -248,11 +248,22 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
 
     with output_folder(out_dir, NATIVE_KIND, option="dataset") as tmp:
         size = _write_frames(tmp, images, masks, n, cam_size, f"writing {out_dir.name}", progress)
-        np.savez(tmp / "cameras.npz", K=K, viewmat=V)
-        np.savez(tmp / "smpl.npz", **p)
-        with open(tmp / "meta.yaml", "w") as f:
-            yaml.safe_dump(_meta_doc(meta, size, n, splits), f, sort_keys=False, default_flow_style=None, width=100)
+        write_tables(tmp, meta, K, V, p, size, splits, "write_native")
     return out_dir
+
+
+def write_tables(folder: Path, meta: NativeMeta, K: np.ndarray, viewmat: np.ndarray, params, size: tuple[int, int],
+                 splits: dict[str, list[int]], where: str) -> None:
+    """A native dataset's tables in ``folder`` beside its frames (written apart, e.g. by a capture that
+    encodes frames as it goes): cameras.npz (K [3,3]|[N,3,3], viewmat [4,4]|[N,4,4]), smpl.npz (``params``
+    checked as :func:`write_native` checks them, ``where`` naming the caller in errors) and meta.yaml
+    (frames of ``size`` (W, H), ``splits``)."""
+    p = _check_params(params, where)
+    n = p["global_orient"].shape[0]
+    np.savez(folder / "cameras.npz", K=np.asarray(K, np.float32), viewmat=np.asarray(viewmat, np.float32))
+    np.savez(folder / "smpl.npz", **p)
+    with open(folder / "meta.yaml", "w") as f:
+        yaml.safe_dump(_meta_doc(meta, size, n, splits), f, sort_keys=False, default_flow_style=None, width=100)
 
 
 def _next_frame(image_iter, mask_iter, i: int, n: int) -> tuple[np.ndarray, np.ndarray]:
