@@ -609,3 +609,31 @@ def test_rasterize_on_each_device_matches_the_reference(device):
     torch.testing.assert_close(on[0].cpu().double(), ref[0], atol=1e-4, rtol=0)
     torch.testing.assert_close(on[1].cpu().double(), ref[1], atol=1e-4, rtol=0)
     torch.testing.assert_close(on[2]["means"].cpu().double(), ref[2]["means"], atol=2e-3, rtol=1e-3)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_mirrored_means2d_gradient_lets_the_step_graph_go(device):
+    # gsplat's [1,N,2] means2d mirrored onto its [N,2] view (as the CUDA backend does, shown here on any
+    # device): the view gets the gradient, and once the caller drops it the step's graph goes with it (a
+    # hook closure holding the view kept every step's graph alive, with the gradient accumulators it
+    # made on the default stream: a later CUDA graph capture then failed, docs/gpu.md).
+    import gc
+    import weakref
+
+    from rmavatar.render.gsplat_backend import mirror_grad
+
+    param = torch.randn(5, 2, device=device, requires_grad=True)
+
+    def step():  # what the backend returns to the caller: the view, in info["means2d"]
+        batched = (param * 2.0)[None]  # [1,5,2]
+        view = batched[0]
+        mirror_grad(batched, view)
+        (batched * torch.arange(10.0, device=device).view(1, 5, 2)).sum().backward()
+        return view
+
+    view = step()
+    torch.testing.assert_close(view.grad, torch.arange(10.0, device=device).view(5, 2))
+    ref = weakref.ref(view)
+    del view
+    gc.collect()
+    assert ref() is None

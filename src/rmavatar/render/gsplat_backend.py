@@ -6,6 +6,8 @@ Outputs are reshaped to the CPU backend's layout: image [H,W,3], alpha [H,W,1], 
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor
 
@@ -54,13 +56,7 @@ def rasterize_gsplat(
     if means2d_c.requires_grad:
         # gsplat composites with the batched tensor, so the [N,2] view is not on the loss path;
         # copy the batched gradient onto it so callers read info["means2d"].grad as on the CPU.
-        means2d.retain_grad()
-
-        def _copy_grad(grad: Tensor) -> None:
-            g = grad[0].detach()
-            means2d.grad = g.clone() if means2d.grad is None else means2d.grad + g
-
-        means2d_c.register_hook(_copy_grad)
+        mirror_grad(means2d_c, means2d)
     info = {
         "means2d": means2d,
         "radii": radii.to(torch.int32),
@@ -69,3 +65,21 @@ def rasterize_gsplat(
         "backend": "gsplat",
     }
     return render[0].to(dtype), alphas[0].to(dtype), info
+
+
+def mirror_grad(batched: Tensor, view: Tensor) -> None:
+    """Give ``view`` (= ``batched[0]``, not itself on the loss path) the gradient that reaches ``batched``
+    [1,...], in ``view.grad``. The hook holds ``view`` weakly: a closure holding the view would make a
+    cycle through the autograd graph (view -> its grad_fn -> batched's grad_fn -> the hook) that the
+    collector cannot see, and every step's graph, parameters' gradient accumulators included, would
+    live on."""
+    view.retain_grad()
+    ref = weakref.ref(view)
+
+    def _copy_grad(grad: Tensor) -> None:
+        v = ref()
+        if v is not None:
+            g = grad[0].detach()
+            v.grad = g.clone() if v.grad is None else v.grad + g
+
+    batched.register_hook(_copy_grad)

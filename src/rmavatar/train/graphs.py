@@ -104,6 +104,10 @@ class StepGraphs:
         self.off_reason: str | None = None if self.enabled else "not a CUDA device" if enabled else "off"
         self.captures, self.capture_s = 0, 0.0
         self.failures: list[tuple[str, str]] = []
+        self._accumulators: list = []  # the parameters' gradient accumulators, made on the capture stream
+        if self.enabled and hasattr(torch.autograd.graph, "set_warn_on_accumulate_grad_stream_mismatch"):
+            # eager steps accumulate into the accumulators pinned to the capture stream, on purpose
+            torch.autograd.graph.set_warn_on_accumulate_grad_stream_mismatch(False)
         self._posing: tuple | None = None  # (signature, callable)
         self._losses: tuple | None = None
 
@@ -174,10 +178,12 @@ class StepGraphs:
         started = time.perf_counter()
         try:
             with no_collection():
+                self._pin_accumulators()
                 graphed = torch.cuda.make_graphed_callables(fn, sample, num_warmup_iters=WARMUP,
                                                             allow_unused_input=True)
         except Exception as exc:  # noqa: BLE001 - any failure to capture: these steps run eagerly
-            reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            reason = "; during: ".join(f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
+                                       for e in (exc, exc.__context__) if e is not None)
             self.failures.append((piece, reason))
             if len(self.failures) >= self.MAX_FAILURES:
                 self.enabled, self.off_reason = False, f"{len(self.failures)} captures failed, the last: {reason}"
@@ -191,6 +197,19 @@ class StepGraphs:
         self.captures += 1
         self.capture_s += time.perf_counter() - started
         return graphed
+
+
+    def _pin_accumulators(self) -> None:
+        """Make the parameters' gradient accumulators on the stream graphs are captured on, and hold them.
+
+        An accumulator keeps the stream it was made on. One made by an eager step is on the legacy default
+        stream (a graphed piece's autograd node has an edge to every parameter, used or not: at SH degree
+        0 the higher bands are unused), and a capture whose backward reaches it must synchronise with that
+        stream, which invalidates the capture. Made here first, every step uses these instead."""
+        stream = torch.cuda.graph(torch.cuda.CUDAGraph()).capture_stream  # torch's stream for captures
+        with torch.cuda.stream(stream):
+            self._accumulators = [p.view_as(p).grad_fn.next_functions[0][0]
+                                  for p in self.avatar.parameters() if p.requires_grad]
 
 
 def _describe(tensors, identity: bool = False) -> tuple:
