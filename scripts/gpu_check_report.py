@@ -76,9 +76,11 @@ def train_summary(log: str) -> dict | None:
     if not m:
         return None
     graphs = re.search(r"^(CUDA graphs.*)$", log.replace("\r", "\n"), re.M)
+    passes = [float(s) for s in re.findall(r"done: \d+ iterations in ([\d.]+) s", log.replace("\r", "\n"))]
     return {"iterations": int(m[1]), "seconds": float(m[2]), "iterations_per_s": float(m[3]),
             "gaussians": int(m[4]), "train_psnr": float(m[5]) if m[5] else None,
-            "cuda_graphs": graphs[1] if graphs else None}
+            "cuda_graphs": graphs[1] if graphs else None,
+            "all_passes_seconds": sum(passes), "passes": len(passes)}  # a pose-refining run has two
 
 
 def memory(path: Path) -> dict | None:
@@ -127,6 +129,8 @@ def report(logs: Path) -> dict:
         "bench_step_eager": bench_step(_json(logs / "bench_step_eager.json")),
         "bench_step_refine": bench_step(_json(logs / "bench_step_refine.json")),
         "train": train_summary(_text(logs / "train.log")),
+        "train_plain_short": train_summary(_text(logs / "train_plain_short.log")),
+        "train_refine": train_summary(_text(logs / "train_refine.log")),
         "train_gpu_memory": memory(logs / "mem.csv"),
         "eval_test": evaluation(_json(logs / "eval_test.json")),
         "eval_novel_pose": evaluation(_json(logs / "eval_novel_pose.json")),
@@ -161,6 +165,14 @@ def summary(r: dict) -> str:
                      f"({_f(t['iterations_per_s'], '.1f')} it/s), {t['gaussians']} Gaussians")
         if t.get("cuda_graphs"):
             lines.append(f"    {t['cuda_graphs']}")
+    plain, refine = r.get("train_plain_short"), r.get("train_refine")
+    finished = all((r["steps"].get(k) or {}).get("rc") == 0 for k in ("train_plain_short", "train_refine"))
+    if plain and refine and not finished:
+        lines.append("  pose refinement: not compared (a run did not finish)")
+    elif plain and refine:
+        r_s, p_s = refine["all_passes_seconds"], plain["all_passes_seconds"]
+        lines.append(f"  pose refinement: {refine['passes']} passes in {_f(r_s, '.0f')} s against "
+                     f"{_f(p_s, '.0f')} s plain = {_f(r_s / p_s if p_s else None)}x")
     if m := r["train_gpu_memory"]:
         lines.append(f"  GPU memory during training (nvidia-smi): peak {m['peak_mib']} MiB (idle {m['idle_mib']})")
     for split in ("test", "novel_pose"):
