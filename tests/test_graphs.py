@@ -184,6 +184,24 @@ def test_cuda_graphs_are_captured_again_as_sh_bands_switch_on(tiny_subject, make
     assert t.graphs.captures == 5 and t.graphs.enabled
 
 
+@CUDA
+def test_cuda_graphs_are_captured_again_after_density_control(tiny_subject, make_train_config, tmp_path):
+    # Densification and pruning replace the parameters: each event is a new signature, captured again
+    # (the run's commonest re-capture), and the steps go on replaying graphs.
+    cfg = make_train_config(tiny_subject, 30, size=64, sh_degree=1, device="cuda", density=True)
+    cfg.density.start, cfg.density.every, cfg.density.reset_start = 2000, 2000, 50_000  # every 1.2 iterations of 30
+    t = Trainer(cfg, tmp_path / "run", progress=False)
+    t.setup()
+    sizes = set()
+    for _ in range(10):
+        assert bool(t.step()["ok"])
+        t.iteration += 1
+        sizes.add(t.avatar.num_gaussians)
+    assert len(sizes) > 1, "no density event happened: the test does not test re-capturing"
+    assert not t.graphs.failures and t.graphs.enabled, t.graphs.failures
+    assert t.graphs.captures >= 2 + len(sizes) - 1
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_posing_a_trained_avatar_equals_the_plain_formula(trained_run, device):
     trained = load_trained(trained_run, device=device)
