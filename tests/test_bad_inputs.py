@@ -149,6 +149,22 @@ def _string_motion(t: Path) -> str:
     return str(path)
 
 
+def _negative_fps_motion(t: Path) -> str:
+    path = t / "neg.npz"
+    np.savez(path, poses=np.zeros((3, 72), np.float32), fps=np.float32(-30))
+    return str(path)
+
+
+def _run_with_checkpoint_folder(t: Path, w) -> str:
+    import shutil
+
+    run = t / "run_copy"
+    shutil.copytree(w["run"], run)
+    (run / "checkpoints" / "last.pt").unlink()
+    (run / "checkpoints" / "last.pt").mkdir()
+    return str(run)
+
+
 CASES = [
     # --- data loss (issue: 6)
     _c("eval-loss:images-dir-holds-metrics-and-checkpoints",
@@ -282,6 +298,79 @@ CASES = [
        "pickled Python objects"),
     # --- argparse
     _c("render-argparse:no-source", lambda t, w: ["render", "--out", str(t / "r.png")], "--random"),
+    # --- issue 43, found by scripts/bad_inputs_corpus.py (benchmarks/bad_inputs_corpus.json)
+    # an output file named with a trailing '/' was written as a file without the slash
+    _c("inspect-silent:json-trailing-slash",
+       lambda t, w: ["inspect", w["data"], "--json", str(t / "s.json") + "/"], "ending in '/'"),
+    _c("eval-silent:json-trailing-slash",
+       lambda t, w: ["eval", w["run"], "--json", str(t / "e.json") + "/", "--no-images"], "ending in '/'"),
+    _c("export-silent:ply-trailing-slash", lambda t, w: ["export", w["run"], "--ply", str(t / "a.ply") + "/"],
+       "ending in '/'"),
+    _c("render-silent:out-trailing-slash",
+       lambda t, w: ["render", "--random", "10", "--out", str(t / "r.png") + "/"], "ending in '/'"),
+    # options that have no effect together were ignored
+    _c("inspect-silent:frames-without-overlay", lambda t, w: ["inspect", w["data"], "--frames", "2"], "--overlay"),
+    _c("inspect-silent:body-without-overlay", lambda t, w: ["inspect", w["data"], "--body", "anny:male"], "--body"),
+    _c("inspect-silent:overwrite-without-output", lambda t, w: ["inspect", w["data"], "--overwrite"], "--overwrite"),
+    _c("export-silent:frame-without-motion",
+       lambda t, w: ["export", w["run"], "--ply", str(t / "a.ply"), "--frame", "3"], "--frame"),
+    _c("export-silent:pose-with-motion",
+       lambda t, w: ["export", w["run"], "--ply", str(t / "a.ply"), "--motion", w["motion"], "--pose", "apose"],
+       "--pose"),
+    # (the host cannot be bound: without the fix this fails on --host instead of serving for ever)
+    _c("view-silent:frames-without-motion",
+       lambda t, w: ["view", w["run"], "--frames", "0:2", "--host", "192.0.2.1"], "--frames"),
+    _c("view-silent:pose-with-motion",
+       lambda t, w: ["view", w["run"], "--motion", w["motion"], "--pose", "apose", "--host", "192.0.2.1"], "--pose"),
+    _c("body-silent:frame-without-motion", lambda t, w: ["body", "show", "--frame", "5", "--out", str(t / "b.png")],
+       "--frame"),
+    _c("body-silent:orient-without-motion",
+       lambda t, w: ["body", "show", "--orient", "keep", "--out", str(t / "b.png")], "--orient"),
+    _c("body-silent:pose-with-motion",
+       lambda t, w: ["body", "show", "--motion", w["motion"], "--pose", "apose", "--out", str(t / "b.png")], "--pose"),
+    _c("body-silent:gender-with-anny-preset",
+       lambda t, w: ["body", "show", "--body", "anny:female", "--gender", "male", "--out", str(t / "b.png")],
+       "--gender"),
+    _c("bench-silent:overwrite-without-json",
+       lambda t, w: ["bench", "raster", "--overwrite", "--configs", "10x16", "--repeats", "1", "--warmup", "0",
+                     "--no-reference"], "--overwrite"),
+    _c("train-silent:threads-zero",
+       lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--threads", "0", "--iters", "1"], "--threads"),
+    # tracebacks
+    _c("synth-tb:size-huge", lambda t, w: ["synth", str(t / "s"), "--size", "100000", "--train", "1", "--test", "1"],
+       "--size"),
+    _c("synth-tb:seed-negative", lambda t, w: ["synth", str(t / "s"), "--size", "16", "--seed", "-1"], "--seed"),
+    _c("demo-tb:seed-negative", lambda t, w: ["demo", "--out", str(t / "d"), "--seed", "-1"], "--seed"),
+    _c("animate-tb:device-unknown",
+       lambda t, w: ["animate", w["run"], "--motion", w["motion"], "--out", str(t / "a.mp4"), "--device", "tpu"],
+       "--device tpu"),
+    _c("bench-tb:raster-configs-zero-gaussians", lambda t, w: ["bench", "raster", "--configs", "0x256"], "--configs"),
+    _c("bench-tb:raster-device-unknown", lambda t, w: ["bench", "raster", "--device", "tpu"], "--device tpu"),
+    _c("bench-tb:quality-work-is-a-file",
+       lambda t, w: ["bench", "quality", "--work", str(user_file(t / "notes.txt"))], "notes.txt"),
+    # messages that did not name the option
+    _c("train-unclear:iters-zero", lambda t, w: ["train", w["data"], "--out", str(t / "run"), "--iters", "0"],
+       "--iters"),
+    _c("synth-unclear:turns-nan", lambda t, w: ["synth", str(t / "s"), "--size", "16", "--turns", "nan"], "--turns"),
+    _c("capture-unclear:test-fraction",
+       lambda t, w: ["capture", str(png(t / "clip" / "0001.png").parent), "--out", str(t / "c"), "--test-fraction",
+                     "1.5"], "--test-fraction"),
+    _c("bench-unclear:raster-configs-not-nxsize", lambda t, w: ["bench", "raster", "--configs", "abc"], "--configs"),
+    _c("bench-unclear:raster-sh-degree", lambda t, w: ["bench", "raster", "--sh-degree", "5"], "--sh-degree"),
+    _c("bench-unclear:raster-disc-scale-nan",
+       lambda t, w: ["bench", "raster", "--disc-scale", "nan", "--configs", "10x16", "--repeats", "1", "--warmup", "0",
+                     "--no-reference"], "--disc-scale"),
+    _c("bench-unclear:speed-raster-reference", lambda t, w: ["bench", "speed", "--raster-reference", "x"],
+       "--raster-reference"),
+    _c("animate-unclear:motion-fps-negative",
+       lambda t, w: ["animate", w["run"], "--motion", _negative_fps_motion(t), "--out", str(t / "a.mp4")],
+       "neg.npz: fps must be a positive number"),
+    _c("eval-unclear:checkpoint-is-a-folder",
+       lambda t, w: ["eval", _run_with_checkpoint_folder(t, w), "--json", str(t / "e.json")], "not a checkpoint file"),
+    # a folder of the user's given as bench quality's --work: its runs would be trained further
+    _c("bench-loss:quality-work-is-a-user-folder",
+       lambda t, w: ["bench", "quality", "--work", str(user_file(t / "mine" / "notes.txt").parent), "--size", "32",
+                     "--iters", "1", "--variants", "full"], "notes.txt"),
 ]
 
 
@@ -490,3 +579,116 @@ def test_a_pickle_given_as_a_checkpoint_is_refused_without_torch_s_warning(tmp_p
         warnings.simplefilter("always")
         read_checkpoint(path)
     assert not caught, [str(w.message) for w in caught]
+
+
+# ----------------------------------------------------------------------------------------------- batch folders
+# (issue: nothing lost, leftovers) rmavatar batch --quiet prints nothing of Ray's, and what a batch writes in its
+# folder ROOT (the tables, jobs.yaml, the job folders ROOT/NAME) follows the output rule: an earlier batch's
+# folder is continued, a file or folder of the user's in it is never replaced or written into. No Ray is
+# started here: the batch's only job has finished earlier, so the command only rewrites the tables.
+def _finished_batch(t: Path) -> tuple[Path, Path]:
+    """A jobs file with one job 'a' and an earlier batch folder in which 'a' has finished, as an earlier
+    rmavatar (before job folders had markers) left it."""
+    from rmavatar.batch.jobs import load_jobs
+    from rmavatar.batch.results import write_results
+    from rmavatar.batch.worker import ROOT_MARKER
+
+    data = t / "data"  # absolute: the same job wherever its jobs file is
+    jobs = yaml_file(t / "jobs.yaml", f"jobs:\n  - {{name: a, data: {data}, overrides: {{iters: 1}}}}\n")
+    job = load_jobs(jobs)[0]
+    root = t / "root"
+    user_file(root / ROOT_MARKER, json.dumps({"format": "rmavatar-batch", "version": 1, "session": "s"}))
+    result = {"format": "rmavatar-batch-job", "job": "a", "subject": "a", "variant": "default", "data": job.data,
+              "fingerprint": job.fingerprint(), "attempts": 1, "host": "h", "status": "ok", "error": None,
+              "iterations": 1, "gaussians": 10, "train_seconds": 1.0, "eval_seconds": 1.0,
+              "splits": {"test": {"psnr": 20.0, "ssim": 0.5, "lpips": 0.3, "frames": 1}}}
+    user_file(root / "a" / "result.json", json.dumps(result))
+    user_file(root / "a" / "job.log", "=== 2026-01-01 00:00:00 attempt 1 of job a on h, pid 1, 1 thread(s), device cpu\n")
+    user_file(root / "a" / "run" / "checkpoints" / "last.pt", "weights")
+    write_results(root, [result], {"wall_seconds": 1.0, "ran": 1, "skipped": 0})
+    return jobs, root
+
+
+def _batch(jobs: Path, root: Path, capsys) -> tuple[int, str]:
+    got = main(["batch", str(jobs), "--out", str(root), "--quiet"])
+    out, err = capsys.readouterr()
+    return got, out + err
+
+
+@pytest.fixture
+def own_registry(tmp_path, monkeypatch):
+    from rmavatar.utils import outputs
+
+    monkeypatch.setattr(outputs, "_registry", lambda: tmp_path / "outputs-registry.json")
+
+
+def test_batch_continues_an_earlier_batch_folder_quietly(tmp_path, capsys, own_registry):
+    jobs, root = _finished_batch(tmp_path)
+    (root / "results.md").unlink()  # an earlier batch killed before it wrote all its tables
+    got, text = _batch(jobs, root, capsys)
+    assert got == 0 and text == ""  # --quiet: not a line
+    assert (root / "results.md").is_file() and "| a | test | ok |" in (root / "results.md").read_text()
+    # each job folder now lists what the job writes there
+    from rmavatar.utils.outputs import read_marker
+
+    assert set(read_marker(root / "a")["files"]) >= {"job.log", "result.json", "run/", "eval_test.json"}
+    got, text = _batch(jobs, root, capsys)  # and again: every file there is rmavatar's
+    assert got == 0 and text == ""
+
+
+@pytest.mark.parametrize("name", ["results.md", "results.csv", "results.json", "jobs.yaml"])
+def test_batch_never_replaces_a_users_file_in_its_folder(name, tmp_path, capsys, own_registry):
+    jobs, root = _finished_batch(tmp_path)
+    mine = user_file(root / name, "my own notes on this batch\n")
+    before = _snapshot(root)
+    got, text = _batch(jobs, root, capsys)
+    assert got == 2 and f"{name} there was not written by rmavatar" in text and "Traceback" not in text, text
+    assert _snapshot(root) == before and mine.read_text() == "my own notes on this batch\n"
+
+
+def test_batch_keeps_the_users_jobs_file_in_its_folder(tmp_path, capsys, own_registry):
+    # `rmavatar batch ROOT/jobs.yaml --out ROOT` with the user's edited copy: it is read, never rewritten.
+    jobs, root = _finished_batch(tmp_path)
+    mine = user_file(root / "jobs.yaml", "# my comment\n" + jobs.read_text())
+    got, text = _batch(mine, root, capsys)
+    assert got == 0, text
+    assert mine.read_text().startswith("# my comment\n")
+
+
+def test_batch_never_writes_into_a_users_folder_named_like_a_job(tmp_path, capsys, own_registry):
+    jobs, root = _finished_batch(tmp_path)
+    yaml_file(jobs, jobs.read_text() + f"  - {{name: extra, data: {tmp_path / 'data'}}}\n")
+    user_file(root / "extra" / "notes.txt")
+    user_file(root / "extra" / "run" / "checkpoints" / "last.pt", "the user's own run")
+    before = _snapshot(root)
+    got, text = _batch(jobs, root, capsys)
+    assert got == 2 and "extra/ holds files that rmavatar did not write" in text and "notes.txt" in text, text
+    assert _snapshot(root) == before
+    (root / "extra").rename(tmp_path / "elsewhere")
+    user_file(root / "extra")  # a file where the job's folder goes
+    got, text = _batch(jobs, root, capsys)
+    assert got == 2 and "extra there is not a job folder" in text, text
+
+
+def test_batch_quiet_silences_ray_and_progress(capsys):
+    """--quiet: ray.init gets logging_level ERROR (Ray 2.60 logs 'Token authentication is enabled for this Ray
+    cluster' as a warning whenever it starts a local instance), and no progress line is printed; a failed
+    job is still reported, on stderr."""
+    import logging
+
+    from rmavatar.batch.driver import BatchOptions, _Driver, _init_ray
+
+    calls = []
+
+    class FakeRay:
+        def init(self, **kwargs):
+            calls.append(kwargs)
+
+    _init_ray(FakeRay(), None, quiet=True)
+    _init_ray(FakeRay(), None)
+    assert [c["logging_level"] for c in calls] == [logging.ERROR, logging.WARNING]
+    driver = _Driver([], Path("."), "s", BatchOptions(progress=False))
+    driver.say("a: started on h")
+    assert capsys.readouterr() == ("", "")
+    driver.say("a: failed: boom", always=True)
+    assert "a: failed: boom" in capsys.readouterr().err

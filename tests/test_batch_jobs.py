@@ -115,7 +115,7 @@ matrix: {subjects: [{name: s, data: d, body: anny}], variants: [no_rectifier]}
     ("jobs: [{name: a, data: x, overrides: {optim.iterz: 3}}]", r"job 'a': overrides.optim: unknown key\(s\) iterz"),
     ("jobs: [{name: a, data: x, overrides: {optm.iters: 3}}]", "job 'a': overrides: unknown key 'optm.iters'"),
     ("jobs: [{name: a, data: x, overrides: {iters: lots}}]", "job 'a': overrides.optim.iters: expected an integer"),
-    ("jobs: [{name: a, data: x, overrides: {iters: 0}}]", "job 'a': iters must be >= 1"),
+    ("jobs: [{name: a, data: x, overrides: {iters: 0}}]", r"job 'a': optim.iters \(--iters\) must be >= 1"),
     ("jobs: [{name: a, data: x, overrides: {no_rectifier: 1}}]", "overrides.no_rectifier: expected true/false"),
     ("jobs: [{name: a, data: x, overrides: {optim: 3}}]", "'optim' is a config section"),
     ("jobs: [{name: a, data: x, overrides: {device: cuda}}]", "overrides.device: set by the batch"),

@@ -225,7 +225,7 @@ def test_options_without_effect_are_refused(tmp_path, capsys):
     outputs are errors before any work (nothing is written)."""
     run, out = str(tmp_path / "run"), str(tmp_path / "e.json")
     for extra, why in ((["--images", str(tmp_path / "i"), "--no-images"], "contradict"),
-                       (["--fit-batch", "4"], "--fit-batch only matter with --fit-poses"),
+                       (["--fit-batch", "4"], "--fit-batch only matters with --fit-poses"),
                        (["--fit-smooth", "0", "--fit-batch", "2"], "--fit-smooth and --fit-batch"),
                        (["--images", str(tmp_path / "." / "e.json") + "/"], "would hold the --json file"),
                        (["--images", str(tmp_path)], "would hold the --json file")):

@@ -94,6 +94,8 @@ class RunFolder:
         if self.read_marker() is None:
             raise UserError(f"{self.path} is not an rmavatar run ({MARKER} missing)")
         if not self.has_checkpoint():
+            if os.path.lexists(self.checkpoint):  # a folder, a broken link: not "missing"
+                raise UserError(f"{self.checkpoint} is not a checkpoint file (a folder or a broken link)")
             raise UserError(f"{self.path} has no checkpoint yet ({self.checkpoint} missing): train it first")
 
     def refuse_foreign(self) -> None:

@@ -10,6 +10,10 @@ the tables.
   the job's last checkpoint. A job's own error (bad input, a bug) fails that job only, with its message.
 - Re-running skips jobs whose result matches their definition (``Job.fingerprint``) and resumes the
   others; jobs that failed with an error stay failed unless ``retry_failed``.
+- Nothing of the user's in ROOT is replaced (the output rule of :mod:`rmavatar.utils.outputs`), checked
+  before anything starts: the tables and jobs.yaml only when rmavatar wrote them (``RootFiles``), a job's
+  folder ROOT/NAME only when it is absent or a job folder of a batch (its ``.rmavatar`` marker, of kind
+  ``batch-job``, lists what the job writes there).
 """
 
 from __future__ import annotations
@@ -18,20 +22,25 @@ import contextlib
 import logging
 import math
 import os
+import re
 import socket
+import sys
 import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from rmavatar.batch.jobs import Job, write_jobs_yaml
-from rmavatar.batch.results import markdown, write_results
+import yaml
+
+from rmavatar.batch.jobs import Job
+from rmavatar.batch.results import RootFiles, markdown, write_results
 from rmavatar.batch.worker import ROOT_MARKER, read_json, write_json
 from rmavatar.utils import UserError, check_writable_folder
 
 RAY_VERSION = "2.60.0"  # what `pip install 'rmavatar[cluster]'` installs and the tests run
 INSTALL_HINT = f"pip install 'rmavatar[cluster]'  (or: pip install ray=={RAY_VERSION})"
 LOCK_FILE = ".batch.lock"
+JOB_KIND = "batch-job"  # the kind in a job folder's .rmavatar marker (rmavatar.utils.outputs)
 CANCEL_WAIT_S = 120.0  # after Ctrl-C, how long running jobs get to write their checkpoint
 
 
@@ -87,7 +96,7 @@ def root_lock(root: Path):
         yield
         return
     root.mkdir(parents=True, exist_ok=True)
-    with open(root / LOCK_FILE, "w") as fh:
+    with open(root / LOCK_FILE, "a") as fh:  # never truncated: it may only be locked
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -119,23 +128,105 @@ def check_options(options: BatchOptions) -> BatchOptions:
     return options
 
 
-def run_batch(jobs: list[Job], root: str | os.PathLike, options: BatchOptions | None = None) -> dict:
-    """Run ``jobs`` under ``root``; returns the results document (also written to ROOT/results.*)."""
+def job_files(job: Job) -> list[str]:
+    """What a job writes in its folder ROOT/NAME (see :mod:`rmavatar.batch.worker`); 'run/' is a whole folder."""
+    return ["job.log", "progress.json", "result.json", "run/", *(f"eval_{s}.json" for s in job.splits)]
+
+
+_LOG_HEADER = re.compile(r"^=== \d{4}-\d\d-\d\d \d\d:\d\d:\d\d attempt \d+ of job (\S+) on ")
+
+
+def _unmarked_job_folder(folder: Path, name: str) -> bool:
+    """True for the folder of job ``name`` written before job folders carried a marker: nothing in it but
+    what a job writes, and a job.log that starts with the worker's header line for that job."""
+    from rmavatar.utils.files import is_temporary
+
+    allowed = {"job.log", "progress.json", "result.json", "run"}
+    for entry in folder.iterdir():
+        if not (entry.name in allowed or re.fullmatch(r"eval_[^/]+\.json", entry.name) or is_temporary(entry.name)):
+            return False
+    try:
+        with open(folder / "job.log", errors="replace") as fh:
+            m = _LOG_HEADER.match(fh.readline())
+    except OSError:
+        return False
+    return bool(m) and m.group(1) == name
+
+
+def check_job_folders(root: Path, jobs: list[Job]) -> None:
+    """UserError unless every job's folder ROOT/NAME is absent or a job folder of a batch holding nothing
+    else; called before anything is written (a folder of the user's there is never written into)."""
+    from rmavatar.utils import outputs
+
+    for job in jobs:
+        folder = root / job.name
+        if not os.path.lexists(folder):
+            continue
+        if folder.is_symlink() or not folder.is_dir():
+            raise UserError(f"--out {root}: {job.name} there is not a job folder (job {job.name!r} writes its "
+                            "folder there): refusing to replace it; move it away or rename the job")
+        foreign = outputs.foreign_files(folder, JOB_KIND)
+        if foreign and outputs.read_marker(folder) is None and _unmarked_job_folder(folder, job.name):
+            continue
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise UserError(f"--out {root}: the folder {job.name}/ holds files that rmavatar did not write there "
+                            f"({shown}): refusing to write job {job.name!r} into it; move them away or rename "
+                            "the job")
+
+
+def mark_job_folders(root: Path, jobs: list[Job]) -> None:
+    """Create each job's folder with its marker (listing what the job writes), or add to the marker."""
+    from rmavatar.utils import outputs
+
+    for job in jobs:
+        folder = root / job.name
+        files = job_files(job)
+        marker = outputs.read_marker(folder) if folder.is_dir() else None
+        if marker is not None and marker.get("kind") == JOB_KIND and set(files) <= set(marker.get("files", [])):
+            continue
+        folder.mkdir(exist_ok=True)
+        outputs.mark_folder(folder, JOB_KIND, files)
+
+
+def _same_file(a: Path, b: str | os.PathLike | None) -> bool:
+    try:
+        return b is not None and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def run_batch(jobs: list[Job], root: str | os.PathLike, options: BatchOptions | None = None, *,
+              jobs_file: str | os.PathLike | None = None) -> dict:
+    """Run ``jobs`` under ``root``; returns the results document (also written to ROOT/results.*).
+
+    ``jobs_file``: the JOBS.yaml the jobs were read from; when it is ROOT/jobs.yaml itself, it is the
+    user's and is left as it is (otherwise ROOT/jobs.yaml gets the resolved jobs)."""
     options = check_options(options or BatchOptions())
     import_ray()  # say what to install before anything is written
     root = Path(root).resolve()
     check_root(root)
+    keep_jobs_yaml = _same_file(root / "jobs.yaml", jobs_file)
+    files = RootFiles(root, skip=("jobs.yaml",) if keep_jobs_yaml else ())
+    files.check()
+    check_job_folders(root, jobs)
     with root_lock(root):
         check_root(root)  # again, now that no other batch can be writing it
+        files.check()
+        check_job_folders(root, jobs)
         session = stamp_root(root)
+        mark_job_folders(root, jobs)
         # The resolved jobs of this invocation: absolute paths, every setting; `rmavatar batch
         # ROOT/jobs.yaml --out ROOT` runs the same batch again.
-        write_jobs_yaml(root / "jobs.yaml", {"jobs": [job.yaml_entry() for job in jobs]})
-        return _Driver(jobs, root, session, options).run()
+        if not keep_jobs_yaml:
+            files.write("jobs.yaml", yaml.safe_dump({"jobs": [job.yaml_entry() for job in jobs]}, sort_keys=False))
+        return _Driver(jobs, root, session, options, files).run()
 
 
 class _Driver:
-    def __init__(self, jobs: list[Job], root: Path, session: str, options: BatchOptions):
+    def __init__(self, jobs: list[Job], root: Path, session: str, options: BatchOptions,
+                 files: RootFiles | None = None):
+        self.files = files
         self.jobs = jobs
         self.root = root
         self.session = session
@@ -147,11 +238,15 @@ class _Driver:
         self.bar = None
         self.stopping = False  # Ctrl-C: no more retries, collect what finishes
 
-    def say(self, msg: str) -> None:
+    def say(self, msg: str, *, always: bool = False) -> None:
+        """A progress line; ``always``: also with --quiet (a job that failed), then on stderr."""
         line = f"[{time.strftime('%H:%M:%S')}] {msg}"
-        if self.bar is not None:
+        if not self.options.progress:
+            if always:
+                print(line, file=sys.stderr, flush=True)
+        elif self.bar is not None:
             self.bar.write(line)
-        elif self.options.progress:
+        else:
             print(line, flush=True)
 
     def run(self) -> dict:
@@ -177,7 +272,7 @@ class _Driver:
         ordered = [self.results[j.name] for j in self.jobs]
         doc = write_results(self.root, ordered, {
             "root": str(self.root), "session": self.session, "wall_seconds": round(wall, 1),
-            "ran": len(todo), "skipped": skipped, "ray": ray_info})
+            "ran": len(todo), "skipped": skipped, "ray": ray_info}, files=self.files)
         if self.options.progress:
             print("\n" + markdown(doc))
             print(f"wrote {self.root / 'results.md'}, results.csv and results.json; wall time {wall:.0f} s")
@@ -188,7 +283,7 @@ class _Driver:
     # --- Ray ------------------------------------------------------------------------------------------
     def _run_on_ray(self, todo: list[Job]) -> dict:
         ray = import_ray()
-        _init_ray(ray, self.options.address)
+        _init_ray(ray, self.options.address, quiet=not self.options.progress)
         try:
             return self._schedule(ray, todo)
         finally:
@@ -277,7 +372,7 @@ class _Driver:
             resumed = f", resumed from iteration {result['resumed_from']}" if result.get("resumed_from") else ""
             self.say(f"{name}: done: {result['iterations']} iterations, {metrics}{resumed}")
         else:
-            self.say(f"{name}: {result['status']}: {result['error']}")
+            self.say(f"{name}: {result['status']}: {result['error']}", always=True)
         return False
 
     def _synth(self, job: Job, attempt: int, status: str, error: str) -> dict:
@@ -320,12 +415,14 @@ class _Driver:
                                                  "gave up waiting; re-run to resume")
 
 
-def _init_ray(ray, address: str | None) -> None:
+def _init_ray(ray, address: str | None, quiet: bool = False) -> None:
     import rmavatar
 
     # Before torch loads in a worker: idle OpenMP threads sleep instead of spinning (see rmavatar.commands.main).
     env = {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
-    kwargs = dict(log_to_driver=False, logging_level=logging.WARNING)
+    # --quiet: Ray's own notices (e.g. "Token authentication is enabled for this Ray cluster", which Ray
+    # 2.60 logs as a warning whenever it starts a local instance) are not printed; its errors still are.
+    kwargs = dict(log_to_driver=False, logging_level=logging.ERROR if quiet else logging.WARNING)
     if address is None:
         # The local workers import the same rmavatar as this process.
         here = str(Path(rmavatar.__file__).resolve().parents[1])

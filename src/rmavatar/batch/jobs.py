@@ -38,7 +38,8 @@ from rmavatar.utils import UserError
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 # Names that are files of the batch root, not job folders.
-RESERVED_NAMES = {"results.csv", "results.json", "results.md", "rmavatar-batch.json", "jobs.yaml"}
+RESERVED_NAMES = {"results.csv", "results.json", "results.md", "rmavatar-batch.json", "jobs.yaml",
+                  "paper_tables.md"}
 # Friendly switches: key -> dotted TrainConfig key (value copied as is).
 SWITCHES = {"iters": "optim.iters", "size": "data.size", "seed": "seed"}
 # Keys the batch itself sets: the dataset and body come from the job's own fields, the device and
@@ -284,13 +285,3 @@ def _check_keys(d: dict, known: set[str], where: str) -> None:
     unknown = sorted(str(k) for k in set(d) - known)
     if unknown:
         raise UserError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-
-
-def write_jobs_yaml(path: str | os.PathLike, data: dict) -> None:
-    """Write a JOBS.yaml document (e.g. the one ``reproduce paper`` makes) atomically."""
-    import yaml
-
-    from rmavatar.utils import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(yaml.safe_dump(data, sort_keys=False))

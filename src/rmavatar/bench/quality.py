@@ -17,6 +17,7 @@ import argparse
 import json
 import math
 import os
+import re
 import statistics
 import time
 from pathlib import Path
@@ -173,8 +174,34 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+WORK_KIND = "bench-quality-work"  # the kind of --work's .rmavatar marker (rmavatar.utils.outputs)
+_WORK_ENTRY = re.compile(r"^(synth-seed\d+-\d+|seed\d+)(/|$)")
+
+
+def check_work(work: Path, seeds: list[int], size: int, with_synth: bool) -> None:
+    """UserError unless ``work`` is new, empty or a --work folder of bench quality (its marker, or only
+    what bench quality writes there when it had none); then marks it with what this run writes. A folder
+    of the user's is never written into: its runs would be resumed and trained further."""
+    from rmavatar.utils import check_writable_folder, outputs
+
+    if os.path.lexists(work) and not work.is_dir():
+        raise UserError(f"--work {work} exists and is not a folder")
+    check_writable_folder(work / outputs.MARKER, f"--work {work}", create=True)
+    foreign = outputs.foreign_files(work, WORK_KIND)
+    if foreign and outputs.read_marker(work) is None:  # a --work folder of a bench quality without markers
+        foreign = [e for e in foreign if not _WORK_ENTRY.match(e)]
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise UserError(f"--work {work} holds files that bench quality did not write there ({shown}): refusing to "
+                        "write into it; choose a new or empty folder")
+    names = [f"seed{s}/" for s in seeds] + ([f"synth-seed{s}-{size}/" for s in seeds] if with_synth else [])
+    work.mkdir(parents=True, exist_ok=True)
+    outputs.mark_folder(work, WORK_KIND, names)
+
+
 def run(args: argparse.Namespace) -> int:
     # --json was checked by the bench command before anything ran (rmavatar.utils.outputs)
+    check_work(Path(args.work), list(args.seeds), args.size, args.data is None)
     result = run_quality(args.work, args.variants, args.data, args.size, args.iters, args.seeds,
                          args.max_gaussians, args.threads, args.device, progress=not args.quiet)
     table = format_table(result)

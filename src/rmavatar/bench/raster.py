@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import statistics
@@ -20,17 +21,18 @@ DEFAULT_CONFIGS = ("10000x256", "10000x512", "50000x256", "50000x512")
 REFERENCE_CONFIG = "1000x64"
 
 
-def _parse_config(text: str) -> tuple[int, int]:
+def _parse_config(text: str, option: str = "--configs") -> tuple[int, int]:
     from rmavatar.utils import UserError
 
     try:
         n, size = text.lower().split("x")
         n, size = int(n), int(size)
-        if n < 0 or size <= 0:
+        if n < 1 or not 1 <= size <= 8192:
             raise ValueError
         return n, size
     except ValueError:
-        raise UserError(f"config {text!r} is not NxSIZE, e.g. 10000x256") from None
+        raise UserError(f"{option}: {text!r} is not NxSIZE (N >= 1 Gaussians x SIZE 1..8192 pixels), "
+                        "e.g. 10000x256") from None
 
 
 def _rss_bytes() -> int:
@@ -180,6 +182,14 @@ def _check_args(args: argparse.Namespace) -> list[tuple[int, int]]:
     configs = [_parse_config(c) for c in args.configs]
     if args.repeats < 1 or args.warmup < 0:
         raise UserError("--repeats must be >= 1 and --warmup >= 0")
+    if not 0 <= args.sh_degree <= 3:
+        raise UserError(f"--sh-degree must be 0..3, got {args.sh_degree}")
+    if not (math.isfinite(args.disc_scale) and args.disc_scale > 0):
+        raise UserError(f"--disc-scale must be a number > 0, got {args.disc_scale}")
+    try:
+        torch.device(args.device)
+    except RuntimeError:
+        raise UserError(f"--device {args.device}: not a torch device (use cpu, cuda or cuda:N)") from None
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"--device {args.device}: no CUDA device is available")
     from rmavatar.render._numba import numba

@@ -232,7 +232,7 @@ def _check(args) -> tuple[int, int]:
         raise UserError(f"--run {args.run}: no such run folder")
     if args.json:  # fail now, not after minutes of measuring, if the result cannot be written
         check_output_file(args.json, option="--json", overwrite=getattr(args, "overwrite", False))
-    ref_n, ref_size = _parse_config(args.raster_reference)
+    ref_n, ref_size = _parse_config(args.raster_reference, "--raster-reference")
     if ref_n < 1:
         raise UserError(f"--raster-reference needs at least one Gaussian, got {args.raster_reference!r}")
     return ref_n, ref_size

@@ -65,7 +65,11 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
                 amass = "mocap_framerate" in data.files or "mocap_frame_rate" in data.files
                 for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
                     if key in data.files:
-                        fps = float(_numbers(data[key], path, key).reshape(-1)[0])
+                        rate = _numbers(data[key], path, key).reshape(-1)
+                        fps = float(rate[0]) if rate.size else float("nan")
+                        if not (np.isfinite(fps) and fps > 0):  # else a command would blame its own --fps
+                            raise UserError(f"motion file {path}: {key} must be a positive number of frames per "
+                                            f"second, got {fps:g}")
                         break
     except ValueError as exc:  # an npz member is read only when accessed: object arrays fail here
         if "allow_pickle" not in str(exc):

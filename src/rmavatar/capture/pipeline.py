@@ -87,7 +87,7 @@ class CaptureConfig:
         if self.size is not None and self.size < MIN_SIZE:
             raise UserError(f"--size must be at least {MIN_SIZE} pixels, got {self.size}")
         if not 0 < self.test_fraction < 1:
-            raise UserError(f"the test fraction must lie between 0 and 1, got {self.test_fraction:g}")
+            raise UserError(f"--test-fraction must lie between 0 and 1 (exclusive), got {self.test_fraction:g}")
 
 
 def intrinsics(width: int, height: int, fov: float | None = None, focal: float | None = None) -> np.ndarray:

@@ -46,6 +46,13 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.animate.video import check_output
     from rmavatar.avatar import load_trained
     from rmavatar.body import load_motion, motion_to_sequence
+    from rmavatar.utils import UserError
+    from rmavatar.utils.device import resolve_device
+
+    try:
+        device = resolve_device(args.device)
+    except UserError as exc:
+        raise UserError(f"--device {args.device}: {exc}") from None
     background = parse_background(args.bg)
     # Every option is checked before any slow work (the fps placeholder stands for the motion's rate). A
     # given --fps is checked as given: 0 or NaN is an error, never silently replaced by a default.
@@ -60,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if fps_given and motion.fps and args.fps < motion.fps:
         step = max(1, round(motion.fps / args.fps))
     seq = seq.select(parse_frame_range(args.frames, len(seq), step))
-    trained = load_trained(args.run, device=args.device)
+    trained = load_trained(args.run, device=device)
     opts = VideoOptions(size=args.size, fov_deg=args.fov, background=background, fps=fps, overwrite=args.overwrite)
     n = animate_video(trained, seq, args.out, camera=args.camera, opts=opts)
     print(f"wrote {n} frames at {fps:g} fps to {args.out}")

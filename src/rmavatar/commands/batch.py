@@ -81,5 +81,5 @@ def run(args: argparse.Namespace) -> int:
 
     check_cluster_options(args)
     jobs = load_jobs(args.jobs)  # every job is validated before anything starts
-    doc = run_batch(jobs, args.out, options_from_args(args))
+    doc = run_batch(jobs, args.out, options_from_args(args), jobs_file=args.jobs)
     return exit_code(doc)

@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
     # The options every benchmark shares, checked before any measuring.
     if getattr(args, "json", None):
         check_output_file(args.json, option="--json", overwrite=args.overwrite)
+    elif getattr(args, "overwrite", False) and args.benchmark != "capture":  # capture's also covers --work
+        raise UserError("--overwrite only applies to --json FILE: leave it out")
     for name in ("threads", "gaussians", "avatar_gaussians", "repeats", "steps", "iters", "warmup", "frames"):
         value = getattr(args, name, None)
         least = 0 if name in ("threads", "warmup") else 1

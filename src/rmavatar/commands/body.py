@@ -30,12 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--gender", choices=("neutral", "male", "female"), default=None,
                       help="picks the SMPL file in a folder, or the Anny preset for plain 'anny'")  # fmt: skip
     show.add_argument("--motion", help="motion file: AIST++/InstantAvatar or AMASS .npz, GART .npy")
-    show.add_argument("--frame", type=int, default=0, help="frame of the motion file (default 0)")
-    show.add_argument("--orient", choices=("auto", "keep", "none"), default="auto",
+    show.add_argument("--frame", type=int, default=None, help="frame of the motion file (default 0)")
+    show.add_argument("--orient", choices=("auto", "keep", "none"), default=None,
                       help="the motion's global orientation: keep it, drop it (none), or auto: keep it but "
                       "turn the body upright when the file is y-down (camera-style, e.g. the AIST++ "
                       "demo), default auto")  # fmt: skip
-    show.add_argument("--pose", choices=("tpose", "apose"), default="tpose",
+    show.add_argument("--pose", choices=("tpose", "apose"), default=None,
                       help="pose when no --motion is given (default tpose)")  # fmt: skip
     show.add_argument("--views", default="front,side", help="comma-separated: front, side, back")
     show.add_argument("--size", type=int, default=512, help="pixels per view (default 512)")
@@ -52,6 +52,20 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.utils import UserError
     from rmavatar.utils.outputs import check_output_file, output_file
 
+    # Options that would have no effect are errors, not silently ignored.
+    if args.motion is None:
+        given = [o for o, v in (("--frame", args.frame), ("--orient", args.orient)) if v is not None]
+        if given:
+            raise UserError(f"{' and '.join(given)} only appl{'ies' if len(given) == 1 else 'y'} to a frame of "
+                            f"--motion: add --motion FILE or leave {'it' if len(given) == 1 else 'them'} out")
+    elif args.pose is not None:
+        raise UserError("--pose is the pose without --motion (a motion frame gives the pose): leave one out")
+    if args.gender is not None and args.body.strip().lower().startswith("anny:"):
+        raise UserError(f"--gender picks the preset of plain 'anny' (or an SMPL file); --body {args.body} names "
+                        "its preset already: leave one out")
+    args.frame = 0 if args.frame is None else args.frame
+    args.orient = args.orient or "auto"
+    args.pose = args.pose or "tpose"
     views = tuple(v.strip() for v in args.views.split(",") if v.strip())
     if not views or any(v not in ("front", "side", "back") for v in views):
         raise UserError(f"--views must list front, side or back, got {args.views!r}")

@@ -67,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.capture.fit import BodyFitConfig
     from rmavatar.utils import UserError
 
+    if not 0 < args.test_fraction < 1:  # (CaptureConfig says "the test fraction"; here the option is named)
+        raise UserError(f"--test-fraction must lie between 0 and 1 (exclusive), got {args.test_fraction:g}")
     fit = BodyFitConfig().still() if args.still else BodyFitConfig()
     if args.iters is not None:
         if args.iters < 1:

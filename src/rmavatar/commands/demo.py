@@ -43,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--iters must be positive, got {args.iters}")
     if args.size > 4096:
         raise UserError(f"--size must be at most 4096 pixels, got {args.size}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
     from rmavatar.demo import DemoConfig, run_demo

@@ -72,9 +72,10 @@ def run(args: argparse.Namespace) -> int:
     if args.fit_poses is None:
         unused = [o for o, v, d in (("--fit-smooth", args.fit_smooth, 2), ("--fit-batch", args.fit_batch, 8)) if v != d]
         if unused:
-            raise UserError(f"{' and '.join(unused)} only matter with --fit-poses: add --fit-poses or leave them out")
+            raise UserError(f"{' and '.join(unused)} only matter{'s' if len(unused) == 1 else ''} with --fit-poses: "
+                            f"add --fit-poses or leave {'it' if len(unused) == 1 else 'them'} out")
     # Fail before the long part, not after it.
-    check_output_file(out, option="--json", overwrite=args.overwrite)
+    check_output_file(args.json, option="--json", overwrite=args.overwrite)  # the string: 'e.json/' is refused
     if args.frames is not None and args.frames < 1:
         raise UserError(f"--frames must be >= 1, got {args.frames}")
     if args.size is not None and args.size < 32:

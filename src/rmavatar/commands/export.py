@@ -27,9 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", metavar="RUN", help="a training run folder (holds checkpoints/last.pt)")
     parser.add_argument("--ply", required=True, metavar="OUT.ply", help="output PLY file")
     parser.add_argument("--motion", metavar="FILE", default=None, help="pose the avatar with a frame of this motion")
-    parser.add_argument("--frame", type=int, default=0, metavar="K",
+    parser.add_argument("--frame", type=int, default=None, metavar="K",
                         help="frame of --motion (default 0; negative counts from the end)")
-    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default=None,
                         help="pose when no --motion is given: tpose (the zero pose, default), apose (arms down "
                              "45 degrees) or train (the median pose of the training frames)")
     parser.add_argument("--up", type=up_axis, default="-y", metavar="{-y,y}",
@@ -50,12 +50,18 @@ def up_axis(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from rmavatar.avatar import load_trained
     from rmavatar.export.export import check_ply_output, export_ply, pose_for_export
+    from rmavatar.utils import UserError
 
-    out = check_ply_output(Path(args.ply), args.overwrite)
+    # Options that would have no effect are errors, not silently ignored.
+    if args.motion is None and args.frame is not None:
+        raise UserError("--frame picks a frame of --motion: add --motion FILE or leave it out")
+    if args.motion is not None and args.pose is not None:
+        raise UserError("--pose is the pose without --motion (a motion frame gives the pose): leave one out")
+    args.frame = 0 if args.frame is None else args.frame
+    args.pose = args.pose or "tpose"
+    out = check_ply_output(args.ply, args.overwrite)  # the string as given: 'a.ply/' is refused
     trained = load_trained(args.run)
     n = export_ply(trained, pose_for_export(trained, args.motion, args.frame, args.pose), out,
                    overwrite=args.overwrite, up=args.up)

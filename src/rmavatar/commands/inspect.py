@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlay", metavar="PNG", default=None,
                         help="write a contact sheet: a few frames per split with the posed body's vertices "
                              "projected by the frame's camera (checks that poses, cameras and masks agree)")
-    parser.add_argument("--frames", type=int, default=4, help="frames per split on the --overlay sheet")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="frames per split on the --overlay sheet (default 4)")
     parser.add_argument("--check", action="store_true",
                         help="also read every frame's image and mask: unreadable or missized files, masks "
                              "that are all empty or saved 0/1 (cameras and poses are always checked)")
@@ -100,6 +101,13 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.utils import UserError
     from rmavatar.utils.outputs import check_output_file, output_file, write_json
 
+    # Options that would have no effect are errors, not silently ignored.
+    if not args.overlay and args.frames is not None:
+        raise UserError("--frames only sets the frames per split of the --overlay sheet: add --overlay PNG or "
+                        "leave it out")
+    if args.overwrite and not args.overlay and args.json in (None, "-"):
+        raise UserError("--overwrite only applies to --json FILE and --overlay PNG: leave it out")
+    args.frames = 4 if args.frames is None else args.frames
     if args.frames < 1:
         raise UserError(f"--frames must be >= 1, got {args.frames}")
     if args.size is not None and not 1 <= args.size <= 8192:
@@ -110,6 +118,9 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.overlay, option="--overlay", overwrite=args.overwrite, suffixes=(".png",))
     kind, path, _ = parse_spec(args.data)
     kind = kind or (detect_kind(path) if path.is_dir() else None)
+    if args.body and not args.overlay and kind != "zju":
+        raise UserError(f"--body only matters with --overlay (or for a ZJU-MoCap dataset, which {args.data} is "
+                        "not): add --overlay PNG or leave it out")
     options = {"body": args.body} if args.body and kind == "zju" else {}
     ds = load_dataset(args.data, size=args.size, cache_mb=64, **options)
     summary = summarize(ds)

@@ -71,7 +71,6 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.batch.jobs import parse_jobs
     from rmavatar.batch.paper import PAPER_ITERS, comparison, paper_jobs
     from rmavatar.commands.batch import check_cluster_options, exit_code, options_from_args
-    from rmavatar.utils import atomic_path
     from rmavatar.utils.outputs import check_output_file, output_file
 
     if args.iters is not None and args.iters < 1:
@@ -103,13 +102,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {len(jobs)} job(s) to {args.write_jobs}; run them with: rmavatar batch {args.write_jobs} "
               f"--out {args.out}")
         return 0
-    from rmavatar.batch.driver import run_batch
+    from rmavatar.batch.driver import check_root, run_batch
+    from rmavatar.batch.results import RootFiles, results_doc
 
+    title = "# RMAvatar's tables: ours next to the paper's\n\n"
+    root = Path(args.out).resolve()
+    check_root(root)
+    # ROOT/paper_tables.md is replaced only when rmavatar wrote it (checked before the batch starts).
+    tables = RootFiles(root, {"paper_tables.md": lambda r, _: title + comparison(results_doc(r))},
+                       skip=("results.json", "results.csv", "results.md", "jobs.yaml"))
+    tables.check()
     result = run_batch(jobs, args.out, options_from_args(args))
     text = comparison(result)
-    root = Path(args.out).resolve()
-    with atomic_path(root / "paper_tables.md") as tmp:
-        tmp.write_text("# RMAvatar's tables: ours next to the paper's\n\n" + text)
+    tables.write("paper_tables.md", title + text)
     if not args.quiet:
         print("\n" + text)
         print(f"wrote {root / 'paper_tables.md'}")

@@ -83,6 +83,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, object]:
 def run(args: argparse.Namespace) -> int:
     from rmavatar.train import train
 
+    if args.threads is not None and args.threads < 1:  # the config's 0 ("torch's choice") is leaving it out here
+        raise UserError(f"--threads must be >= 1 (leave it out for torch's choice), got {args.threads}")
     if args.resume:
         if args.config:
             raise UserError("--resume continues with the run's own config; do not pass --config")

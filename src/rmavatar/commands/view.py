@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", metavar="RUN", help="a training run folder (holds checkpoints/last.pt)")
     parser.add_argument("--motion", metavar="FILE", default=None, help="motion file to play (.npz or .npy)")
     parser.add_argument("--frames", metavar="A:B", default=None, help="motion frames to use (python slice rules)")
-    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default="tpose",
+    parser.add_argument("--pose", choices=("tpose", "apose", "train"), default=None,
                         help="pose shown without --motion: tpose (default), apose, or train (the median "
                              "training pose)")
     parser.add_argument("--port", type=int, default=8080,
@@ -55,6 +55,12 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.utils import UserError
     from rmavatar.viewer.app import avatar_viewer
 
+    # Options that would have no effect are errors, not silently ignored.
+    if args.motion is None and args.frames is not None:
+        raise UserError("--frames selects frames of --motion: add --motion FILE or leave it out")
+    if args.motion is not None and args.pose is not None:
+        raise UserError("--pose is the pose shown without --motion: leave one out")
+    args.pose = args.pose or "tpose"
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port must be in 0..65535, got {args.port}")
     _check_host(args.host)

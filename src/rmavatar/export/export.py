@@ -12,7 +12,7 @@ from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_file
 
 
-def check_ply_output(path: Path, overwrite: bool = False) -> Path:
+def check_ply_output(path: str | os.PathLike, overwrite: bool = False) -> Path:
     """Fail early, before loading anything, when ``path`` cannot become a PLY file."""
     return check_output_file(path, option="--ply", overwrite=overwrite, suffixes=(".ply",))
 

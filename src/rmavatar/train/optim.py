@@ -37,7 +37,7 @@ class OptimConfig:
         check_fields(self, "optim", positive=("adam_eps", "sh_rest_divisor"),
                      nonnegative=("lr_scaling", "lr_rotation", "lr_opacity", "lr_color", "lr_rectifier"))
         if self.iters < 1:
-            raise UserError(f"iters must be >= 1, got {self.iters}")
+            raise UserError(f"optim.iters (--iters) must be >= 1, got {self.iters}")
         if self.lr_position_final <= 0 or self.lr_position <= 0:
             raise UserError("optim.lr_position and optim.lr_position_final must be > 0")
         return self

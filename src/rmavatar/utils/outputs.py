@@ -14,8 +14,10 @@ Copying a file elsewhere or editing it loses the proof, which errs on the side o
 Run folders keep their own marker (``rmavatar-run.json``, see :mod:`rmavatar.avatar.run`): training
 never deletes anything in them, it only refuses folders that are not its runs. Batch folders (``rmavatar
 batch`` / ``reproduce --out``) likewise keep their own marker (see :mod:`rmavatar.batch.driver`): a
-non-empty folder without it is refused. Every command's output options are walked by
-tests/test_outputs_walk.py, which puts a user's file where each output goes and checks it is kept.
+non-empty folder without it is refused; inside one, the tables and jobs.yaml are single files under this
+rule (``rmavatar.batch.results.RootFiles``) and each job's folder carries a marker of kind ``batch-job``.
+Every command's output options are walked by tests/test_outputs_walk.py, which puts a user's file where
+each output goes and checks it is kept.
 """
 
 from __future__ import annotations
@@ -258,6 +260,10 @@ def check_output_file(path: str | os.PathLike, *, option: str, overwrite: bool =
 
     The folder must exist and be writable; an existing ``path`` must be a regular file that rmavatar wrote
     (or ``overwrite``); never a folder, a device or a link."""
+    text = os.fspath(path)
+    if text.endswith("/") or text.endswith(os.sep):  # Path() would drop the slash and write a file there
+        raise UserError(f"{option} {text}: a name ending in '/' is a folder; give a file name (e.g. "
+                        f"{text.rstrip('/' + os.sep) or 'out'})")
     path = Path(path)
     what = f"{option} {path}"
     if suffixes and path.suffix.lower() not in suffixes:

@@ -5,6 +5,7 @@ subjects, rendered by a textured-mesh rasterizer independent of the Gaussian one
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -15,6 +16,7 @@ from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_folder, output_folder
 
 PRESETS = ("neutral", "male", "female", "child")
+MAX_SIZE = 4096  # pixels; the supersampled frame of a larger one would not fit in memory
 
 
 @dataclass
@@ -38,8 +40,13 @@ class SynthConfig:
     fps: float = 7.5  # frame rate stored in meta.yaml (PeopleSnapshot's 30 fps subsampled by 4)
 
     def check(self) -> None:
-        if self.size < 16:
-            raise UserError(f"--size must be at least 16 pixels, got {self.size}")
+        if not 16 <= self.size <= MAX_SIZE:
+            raise UserError(f"--size must be in 16..{MAX_SIZE} pixels, got {self.size}")
+        if self.seed < 0:
+            raise UserError(f"--seed must be >= 0, got {self.seed}")
+        for name in ("turns", "pose_noise", "distance", "fps"):  # NaN passes every comparison below
+            if not math.isfinite(getattr(self, name)):
+                raise UserError(f"--{name.replace('_', '-')} must be a finite number, got {getattr(self, name)}")
         if self.preset not in PRESETS:
             raise UserError(f"--preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
         for name in ("train", "test"):
