@@ -169,9 +169,8 @@ def check_job_folders(root: Path, jobs: list[Job]) -> None:
         if foreign and outputs.read_marker(folder) is None and _unmarked_job_folder(folder, job.name):
             continue
         if foreign:
-            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
             raise UserError(f"--out {root}: the folder {job.name}/ holds files that rmavatar did not write there "
-                            f"({shown}): refusing to write job {job.name!r} into it; move them away or rename "
+                            f"({outputs.some_of(foreign)}): refusing to write job {job.name!r} into it; move them away or rename "
                             "the job")
 
 

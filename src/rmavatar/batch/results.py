@@ -81,18 +81,20 @@ def csv_text(rows: list[dict]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- the root's files
-def results_doc(root: Path) -> dict:
-    doc = json.loads((root / "results.json").read_text())
+def _results_document(text: str) -> dict:
+    """The results document in ``text`` (ValueError when it is not one)."""
+    doc = json.loads(text)
     if not isinstance(doc, dict) or doc.get("format") != "rmavatar-batch-results":
         raise ValueError("not a results document")
     return doc
 
 
+def results_doc(root: Path) -> dict:
+    return _results_document((root / "results.json").read_text())
+
+
 def _same_json(text: str) -> str:
-    doc = json.loads(text)
-    if not isinstance(doc, dict) or doc.get("format") != "rmavatar-batch-results":
-        raise ValueError("not a results document")
-    return json.dumps(doc, indent=2, allow_nan=False) + "\n"
+    return json.dumps(_results_document(text), indent=2, allow_nan=False) + "\n"
 
 
 def _same_jobs_yaml(text: str) -> str:

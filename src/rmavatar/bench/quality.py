@@ -191,8 +191,8 @@ def check_work(work: Path, seeds: list[int], size: int, with_synth: bool) -> Non
     if foreign and outputs.read_marker(work) is None:  # a --work folder of a bench quality without markers
         foreign = [e for e in foreign if not _WORK_ENTRY.match(e)]
     if foreign:
-        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-        raise UserError(f"--work {work} holds files that bench quality did not write there ({shown}): refusing to "
+        raise UserError(f"--work {work} holds files that bench quality did not write there "
+                        f"({outputs.some_of(foreign)}): refusing to "
                         "write into it; choose a new or empty folder")
     names = [f"seed{s}/" for s in seeds] + ([f"synth-seed{s}-{size}/" for s in seeds] if with_synth else [])
     work.mkdir(parents=True, exist_ok=True)

@@ -416,6 +416,28 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     )
 
 
+def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: str, fx: float, losses: dict):
+    """The captured dataset's meta.yaml (a NativeMeta): body ``spec``, ``splits``, where each frame came from."""
+    from rmavatar.data import NativeMeta
+
+    preset = spec.partition(":")[2] if spec.startswith("anny:") else None
+    gender = (preset if preset in ("male", "female") else "neutral") if preset else None
+    return NativeMeta(
+        name=source.path.stem, splits=splits, fps=source.fps if cfg.fps is None else min(cfg.fps, source.fps),
+        gender=gender, body=spec, poses_estimated=True,
+        extra={"generator": "rmavatar capture", "source": str(source.path.resolve()),
+               "source_fps": source.fps, "frames_decoded": clip.decoded,
+               # dataset frame i (images/{i:05d}.png) is the source's frame source_frames[i]: the video's
+               # 0-based frame number, as on the contact sheet and in capture.npz's source_index
+               "source_frames": list(clip.index),
+               "frames_without_person": clip.no_person, "frames_with_another_person": clip.other_person,
+               "frames_looked_at_first": clip.look.looked,
+               "detection_size": list(clip.work_size),
+               "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": fx},
+               "fit": asdict(cfg.fit), "losses": losses},
+    )  # fmt: skip
+
+
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
@@ -429,7 +451,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     from rmavatar.capture.fit import fit_body
     from rmavatar.capture.frames import kept_frames, open_source
     from rmavatar.capture.sheet import contact_sheet
-    from rmavatar.data import Camera, NativeMeta
+    from rmavatar.data import Camera
     from rmavatar.utils import resolve_device
     from rmavatar.utils.files import tmp_prefix
     from rmavatar.utils.outputs import output_folder
@@ -463,23 +485,8 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         with stages("fit"):
             obs = _observations(clip, K, size, device)
             result = fit_body(body, obs, cfg.fit, progress=progress)
-        out_fps = source.fps if cfg.fps is None else min(cfg.fps, source.fps)
         spec = getattr(body, "spec", cfg.body)
-        preset = spec.partition(":")[2] if spec.startswith("anny:") else None
-        gender = (preset if preset in ("male", "female") else "neutral") if preset else None
-        meta = NativeMeta(
-            name=source.path.stem, splits=splits, fps=out_fps, gender=gender, body=spec, poses_estimated=True,
-            extra={"generator": "rmavatar capture", "source": str(source.path.resolve()),
-                   "source_fps": source.fps, "frames_decoded": clip.decoded,
-                   # dataset frame i (images/{i:05d}.png) is the source's frame source_frames[i]: the video's
-                   # 0-based frame number, as on the contact sheet and in capture.npz's source_index
-                   "source_frames": list(clip.index),
-                   "frames_without_person": clip.no_person, "frames_with_another_person": clip.other_person,
-                   "frames_looked_at_first": clip.look.looked,
-                   "detection_size": list(clip.work_size),
-                   "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": float(K[0, 0])},
-                   "fit": asdict(cfg.fit), "losses": result.losses},
-        )  # fmt: skip
+        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses)
         params = {"betas": result.betas, "global_orient": result.global_orient, "body_pose": result.body_pose,
                   "transl": result.transl}
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)

@@ -32,7 +32,7 @@ from rmavatar.avatar.frame import pose_frame
 from rmavatar.avatar.model import Avatar, AvatarExtras
 from rmavatar.train.losses import LossConfig, total_loss
 from rmavatar.utils.device import host_scalar
-from rmavatar.utils.graphs import WARMUP, no_collection
+from rmavatar.utils.graphs import WARMUP, capture_failure, no_collection
 
 
 class PosedTensors(NamedTuple):
@@ -182,8 +182,7 @@ class StepGraphs:
                 graphed = torch.cuda.make_graphed_callables(fn, sample, num_warmup_iters=WARMUP,
                                                             allow_unused_input=True)
         except Exception as exc:  # noqa: BLE001 - any failure to capture: these steps run eagerly
-            reason = "; during: ".join(f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
-                                       for e in (exc, exc.__context__) if e is not None)
+            reason = capture_failure(exc)
             self.failures.append((piece, reason))
             if len(self.failures) >= self.MAX_FAILURES:
                 self.enabled, self.off_reason = False, f"{len(self.failures)} captures failed, the last: {reason}"
@@ -197,7 +196,6 @@ class StepGraphs:
         self.captures += 1
         self.capture_s += time.perf_counter() - started
         return graphed
-
 
     def _pin_accumulators(self) -> None:
         """Make the parameters' gradient accumulators on the stream graphs are captured on, and hold them.

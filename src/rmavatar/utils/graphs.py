@@ -35,6 +35,13 @@ def no_collection() -> Iterator[None]:
             gc.enable()
 
 
+def capture_failure(exc: BaseException) -> str:
+    """Why a capture failed, in one line: the error, and the one it happened during (ending a broken
+    capture raises again, hiding the first error in ``__context__``)."""
+    return "; during: ".join(f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
+                             for e in (exc, exc.__context__) if e is not None)
+
+
 class Replay:
     """``fn(*tensors) -> tuple of tensors``, run without autograd; on CUDA inputs replayed as a CUDA graph.
 
@@ -80,7 +87,7 @@ class Replay:
                 with torch.cuda.graph(graph):
                     outputs = tuple(self.fn(*static))
         except Exception as exc:  # noqa: BLE001 - any failure to capture: plain calls from now on
-            self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
+            self.enabled, self.off_reason = False, capture_failure(exc)
             print(f"CUDA graph off (running without it): {self.off_reason}", file=sys.stderr, flush=True)
             torch.cuda.synchronize()
             return False

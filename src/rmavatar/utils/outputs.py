@@ -107,6 +107,11 @@ def foreign_files(folder: str | os.PathLike, kind: str) -> list[str]:
     return [e for e in _entries(folder) if not _is_owned(e, owned) and not is_temporary(Path(e).name)]
 
 
+def some_of(names: list[str], most: int = 3) -> str:
+    """The first ``most`` of ``names`` for a message, and how many more: "a, b, c and 4 more"."""
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def _describe(kind: str, marker: dict | None) -> str:
     if marker is None:
         return f"no {MARKER} marker"
@@ -134,10 +139,9 @@ def check_output_folder(path: str | os.PathLike, kind: str, *, option: str, over
     if not foreign:
         return path
     if not overwrite:
-        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
         raise UserError(
             f"{option} {path} holds files that rmavatar did not write there ({_describe(kind, read_marker(path))}: "
-            f"{shown}): refusing to replace it; choose a new or empty folder, or pass --overwrite to write into "
+            f"{some_of(foreign)}): refusing to replace it; choose a new or empty folder, or pass --overwrite to write into "
             "it (files rmavatar did not write are kept, never replaced)")
     clash = [f for f in foreign if f == MARKER or any(fnmatch.fnmatch(Path(f).name, w) for w in writes)]
     if clash:
