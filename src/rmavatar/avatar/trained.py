@@ -102,15 +102,17 @@ class TrainedAvatar:
         CUDA graph on a GPU. ``keep=False``: the tensors are the graph's output buffers, valid until the
         next call (a render loop that draws each frame at once saves their copies)."""
         if self._checked is not poses:  # checked once per sequence: the graph itself reads nothing back
-            for name in ("global_orient", "body_pose", "transl"):
-                if not bool(torch.isfinite(getattr(poses, name)).all()):
+            for name in ("global_orient", "body_pose", "transl", "hand_pose"):
+                if getattr(poses, name) is not None and not bool(torch.isfinite(getattr(poses, name)).all()):
                     raise UserError(f"the poses' {name} contains NaN or infinite values")
             self._checked = poses
         one = poses.select(slice(i, i + 1)).to(self.device)
         shape = self._shape()
         if self._poser is None:
             self._poser = Replay(self._pose_one, enabled=self.cuda_graphs)
-        out = self._poser(one.global_orient, one.body_pose, one.transl, *(() if shape is None else (shape,)))
+        # no hand pose: an empty [1,0] tensor, so the graph's arguments keep one layout
+        hands = one.hand_pose if one.hand_pose is not None else one.transl.new_zeros(1, 0)
+        out = self._poser(one.global_orient, one.body_pose, one.transl, hands, *(() if shape is None else (shape,)))
         means, quats, scales, opacities, sh, *frames = (t.clone() for t in out) if keep else out
         return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh,
                            sh_degree=self.avatar.config.sh_degree, frames=frames[0] if frames else None)
@@ -120,9 +122,12 @@ class TrainedAvatar:
         """:meth:`pose`'s Replay (whether it captured, why not), once pose() has run."""
         return self._poser
 
-    def _pose_one(self, global_orient, body_pose, transl, betas=None) -> tuple[torch.Tensor, ...]:
-        """:meth:`pose` as a function of tensors ([1,3], [1,69], [1,3], [1,nb]) for :class:`Replay`."""
-        vertices = self.body(betas, global_orient, body_pose, transl, check_values=False).vertices.float()[0]
+    def _pose_one(self, global_orient, body_pose, transl, hand_pose, betas=None) -> tuple[torch.Tensor, ...]:
+        """:meth:`pose` as a function of tensors ([1,3], [1,69], [1,3], [1,90] or [1,0] for no hand pose,
+        [1,nb]) for :class:`Replay`."""
+        hands = hand_pose if hand_pose.shape[1] else None
+        vertices = self.body(betas, global_orient, body_pose, transl, check_values=False,
+                             hand_pose=hands).vertices.float()[0]
         gs = self.avatar.world_gaussians(vertices, body_pose.reshape(69))
         return (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh) + (() if gs.frames is None else (gs.frames,))
 

@@ -20,6 +20,13 @@ Frames: Anny is Z-up, facing -Y, +X the body's left; SMPL is Y-up, facing +Z, +X
 Retargeting: the SMPL pose gives world rotations ``G_j``; an Anny bone mapped to joint ``j`` gets
 ``G_j Q_b``, where ``Q_b`` turns the bone from Anny's rest (A-pose, elbows bent) to SMPL's T-pose
 direction, so zero SMPL pose gives a T-pose and each mapped Anny bone points where SMPL's bone points.
+
+Fingers: the hand pose (MANO's 15 joints per hand, :data:`~rmavatar.body.base.HAND_JOINT_NAMES`) extends
+SMPL's tree to :data:`~rmavatar.body.base.HAND_PARENTS`; MANO's thumb, index, middle, ring and pinky are
+Anny's ``finger1`` .. ``finger5`` and joint ``k`` is bone ``fingerF-k``. Zero hand pose is a flat hand:
+``Q_b`` of every finger bone also turns it into the palm's plane, in line with the finger's first bone
+(as Anny's rest fans the fingers). Without a hand pose the hands take Anny's rest shape, slightly
+curled (``relaxed_hand_pose``): the hands every Anny body had before hand poses existed.
 """
 
 from __future__ import annotations
@@ -34,12 +41,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from rmavatar.body.base import (
+    FINGERS,
+    HAND_JOINT_NAMES,
+    HAND_PARENTS,
     SMPL_PARENTS,
     SMPL_REST_JOINTS,
     BodyModel,
     BodyOutput,
+    check_hand_pose,
     check_pose_inputs,
 )
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
@@ -71,6 +83,17 @@ _EXTRA_DRIVEN = {
     **{f"toe{i}-1.{s}": (10 if s == "L" else 11) for i in range(1, 6) for s in "LR"},
     **{f"finger{i}-1.{s}": (22 if s == "L" else 23) for i in range(2, 6) for s in "LR"},
 }
+
+# MANO's fingers as Anny's: finger1 is the thumb ... finger5 the little finger.
+ANNY_FINGER = {"thumb": 1, "index": 2, "middle": 3, "ring": 4, "pinky": 5}
+
+
+def hand_bone(joint: int) -> str:
+    """The Anny bone of hand joint ``joint`` (0..29 in ``hand_pose``'s order), e.g. 0 -> 'finger2-1.L'."""
+    side, k = divmod(joint, 15)
+    name = HAND_JOINT_NAMES[k]
+    return f"finger{ANNY_FINGER[name[:-1]]}-{name[-1]}.{'LR'[side]}"
+
 
 # Named phenotypes (Anny's parameters, 0..1; gender 0 = male, 1 = female; age 2/3 = young adult,
 # 1/3 = child). Unlisted parameters are 0.5. Anny's height 0.5 makes a 1.91 m man; 0.385 gives
@@ -215,6 +238,42 @@ def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
+def _flat_fingers(source: list[int], Q: np.ndarray, heads: np.ndarray, verts: np.ndarray, skin: np.ndarray,
+                  bone: dict[str, int]) -> tuple[np.ndarray, list[int]]:
+    """Drive each finger bone by its hand joint and make zero hand pose a flat hand (in place on
+    ``source`` and ``Q``; see the module docstring). Returns the relaxed hand's local rotations
+    ``[30,3,3]`` (they give back Anny's rest fingers) and the fingertip vertex of each finger
+    (left thumb .. pinky, then right).
+
+    Rest-space geometry (``heads``, ``verts`` in our frame, Anny's rest): a finger's bones point from
+    head to head, the last from its head to its tip, the vertex of the last bone (weight > 0.5) that
+    reaches furthest along the finger.
+    """
+    relaxed = np.tile(np.eye(3), (30, 1, 1))
+    tips = []
+    for side, s in enumerate("LR"):
+        wrist = heads[bone[f"wrist.{s}"]]
+        normal = np.cross(heads[bone[f"finger2-1.{s}"]] - wrist, heads[bone[f"finger5-1.{s}"]] - wrist)
+        normal /= np.linalg.norm(normal)
+        for finger in FINGERS:
+            chain = [bone[f"finger{ANNY_FINGER[finger]}-{k}.{s}"] for k in (1, 2, 3)]
+            last = heads[chain[2]] - heads[chain[1]]
+            own = np.nonzero(skin[:, chain[2]] > 0.5)[0]
+            tip = int(own[np.argmax((verts[own] - heads[chain[2]]) @ last)])
+            tips.append(tip)
+            ends = [heads[chain[1]], heads[chain[2]], verts[tip]]
+            flat = ends[0] - heads[chain[0]]
+            flat = flat - (flat @ normal) * normal
+            previous = None  # the canonical-space turn of the bone before, Mc
+            for k, b in enumerate(chain):
+                joint = 24 + 15 * side + HAND_JOINT_NAMES.index(f"{finger}{k + 1}")
+                M = _min_rotation(ends[k] - heads[b], flat)
+                Mc = Q[b] @ M @ Q[b].T
+                relaxed[joint - 24] = Mc.T if previous is None else previous @ Mc.T
+                source[b], Q[b], previous = joint, Q[b] @ M, Mc
+    return relaxed, tips
+
+
 class AnnyBody(BodyModel):
     """Anny posed by SMPL-format parameters (see the module docstring for attributes and conventions)."""
 
@@ -256,14 +315,21 @@ class AnnyBody(BodyModel):
                 if j in _AIM_CHILD and SMPL_TO_ANNY[j] == name:
                     end = bone[SMPL_TO_ANNY[_AIM_CHILD[j]]]
                     Q[b] = _min_rotation(heads[end] - heads[b], SMPL_REST_JOINTS[_AIM_CHILD[j]] - SMPL_REST_JOINTS[j])
+        V = verts.shape[0]
+        dense = torch.zeros(V, J, dtype=torch.float32)
+        dense.scatter_add_(1, tensors["skin_indices"].long(), tensors["skin_weights"].float())
+        relaxed, tips = _flat_fingers(source, Q, heads, verts, dense.numpy(), bone)
         self.register_buffer("source_joint", torch.tensor(source), persistent=False)
         self.register_buffer("rest_correction", torch.tensor(Q, dtype=torch.float32), persistent=False)
         self.register_buffer("joint_bones", torch.tensor([bone[n] for n in SMPL_TO_ANNY]), persistent=False)
         self.register_buffer("pelvis", torch.tensor(SMPL_REST_JOINTS[0], dtype=torch.float32), persistent=False)
-
-        V = verts.shape[0]
-        dense = torch.zeros(V, J, dtype=torch.float32)
-        dense.scatter_add_(1, tensors["skin_indices"].long(), tensors["skin_weights"].float())
+        self.register_buffer("relaxed_hands", torch.tensor(relaxed, dtype=torch.float32), persistent=False)
+        self.register_buffer("relaxed_hand_pose", torch.tensor(
+            Rotation.from_matrix(relaxed).as_rotvec().reshape(-1), dtype=torch.float32), persistent=False)
+        hand_point_bones = [bone[f"wrist.{side}"] if k == 0 else bone[f"finger{ANNY_FINGER[FINGERS[(k - 1) // 4]]}-{(k - 1) % 4 + 1}.{side}"]
+                            for side in "LR" for k in range(21) if k == 0 or (k - 1) % 4 < 3]  # fmt: skip
+        self.register_buffer("hand_point_bones", torch.tensor(hand_point_bones), persistent=False)
+        self.register_buffer("fingertip_vertices", torch.tensor(tips), persistent=False)
         self.register_buffer("skin_weights", dense, persistent=False)
         self.register_buffer("rest_vertices", torch.tensor(verts, dtype=torch.float32), persistent=False)
         self.register_buffer("rest_heads", torch.tensor(heads, dtype=torch.float32), persistent=False)
@@ -281,15 +347,27 @@ class AnnyBody(BodyModel):
 
     def joint_weights(self) -> torch.Tensor:
         """``[V,24]``: each Anny bone's skinning weight counted for the SMPL joint that drives it
-        (``source_joint``), so a joint's column is the share of the vertex that its rotation moves."""
+        (``source_joint``; a finger joint counts for its SMPL ancestor, the hand or the wrist), so a
+        joint's column is the share of the vertex that its rotation moves."""
+        ancestor = [j for j in range(24)] + [HAND_PARENTS[24 + 15 * s] if k == 0 else 0 for s in range(2)
+                                             for k in range(15)]  # fmt: skip
+        for j in range(24, len(HAND_PARENTS)):  # a finger's later joints count for its first one's ancestor
+            p = HAND_PARENTS[j]
+            ancestor[j] = ancestor[p] if p >= 24 else p
         drive = torch.zeros(len(self.bone_names), 24, device=self.skin_weights.device)
-        drive[torch.arange(len(self.bone_names)), self.source_joint] = 1.0
+        drive[torch.arange(len(self.bone_names)), torch.tensor(ancestor)[self.source_joint.cpu()]] = 1.0
         return self.skin_weights @ drive
 
-    def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor) -> torch.Tensor:
-        """Retarget SMPL axis-angle pose to Anny's local bone rotations ``[B,104,3,3]`` (our frame)."""
+    def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor,
+                       hand_pose: torch.Tensor | None = None) -> torch.Tensor:
+        """Retarget SMPL axis-angle pose (and ``hand_pose [B,90]``, None: relaxed hands) to Anny's local
+        bone rotations ``[B,104,3,3]`` (our frame)."""
         local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], 1).reshape(-1, 24, 3))
-        G_smpl = global_rotations(local, SMPL_PARENTS)
+        if hand_pose is None:
+            hands = self.relaxed_hands.expand(local.shape[0], -1, -1, -1)
+        else:
+            hands = axis_angle_to_matrix(hand_pose.reshape(-1, 30, 3))
+        G_smpl = global_rotations(torch.cat([local, hands], 1), HAND_PARENTS)
         G = G_smpl[:, self.source_joint] @ self.rest_correction  # world rotation of each Anny bone
         parents = constant((0, *self.bone_parents[1:]), torch.long, G.device)
         L = G[:, parents].transpose(-1, -2) @ G
@@ -303,13 +381,15 @@ class AnnyBody(BodyModel):
         t = root_translation[:, None]
         return v + t, heads + t
 
-    def forward(self, betas, global_orient, body_pose, transl=None, check_values=True) -> BodyOutput:
-        """SMPL parameters -> posed Anny. ``betas`` are ignored (shape comes from the preset)."""
+    def forward(self, betas, global_orient, body_pose, transl=None, check_values=True, hand_pose=None) -> BodyOutput:
+        """SMPL parameters (and ``hand_pose [B,90]``, None: relaxed hands) -> posed Anny. ``betas`` are
+        ignored (shape comes from the preset)."""
+        dtype, device = self.rest_vertices.dtype, self.rest_vertices.device
         _, global_orient, body_pose, transl = check_pose_inputs(
-            None, global_orient, body_pose, transl, 0, self.rest_vertices.dtype, self.rest_vertices.device,
-            check_values,
+            None, global_orient, body_pose, transl, 0, dtype, device, check_values,
         )
-        rotations = self.bone_rotations(global_orient, body_pose)
+        hand_pose = check_hand_pose(hand_pose, global_orient.shape[0], dtype, device, check_values)
+        rotations = self.bone_rotations(global_orient, body_pose, hand_pose)
         # SMPL rotates the body about its rest pelvis J0; our chain rotates about Anny's root head h0.
         R0 = rotations[:, 0]
         h0 = self.rest_heads[0]
@@ -317,4 +397,13 @@ class AnnyBody(BodyModel):
         vertices, heads = self.forward_bones(rotations, shift)
         joints = heads[:, self.joint_bones]
         joints = torch.cat([(self.pelvis + transl)[:, None], joints[:, 1:]], 1)
-        return BodyOutput(vertices=vertices, joints=joints)
+        return BodyOutput(vertices=vertices, joints=joints, hand_points=self._hand_points(heads, vertices))
+
+    def _hand_points(self, heads: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+        """``[B,42,3]`` in MediaPipe's order: bone heads for the wrist and the finger joints, a vertex at
+        each fingertip."""
+        points = heads[:, self.hand_point_bones].reshape(-1, 2, 16, 3)  # [B, hand, wrist + 15 joints, xyz]
+        joints = points[:, :, 1:].reshape(-1, 2, 5, 3, 3)  # [B, hand, finger, joint, xyz]
+        tips = vertices[:, self.fingertip_vertices].reshape(-1, 2, 5, 1, 3)
+        fingers = torch.cat([joints, tips], 3).reshape(-1, 2, 20, 3)
+        return torch.cat([points[:, :, :1], fingers], 2).reshape(-1, 42, 3)

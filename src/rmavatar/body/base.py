@@ -31,12 +31,40 @@ SMPL_REST_JOINTS = np.array([
 ])  # fmt: skip
 
 
+# Hand poses, as in MANO, SMPL-H and SMPL-X: per hand 15 joints, each an axis-angle rotation relative to
+# its parent joint (world-aligned axes at the rest pose, like SMPL's), in this order; zero is a flat hand
+# (fingers straight). ``hand_pose [B,90]`` is the left hand's 45 values, then the right hand's.
+HAND_JOINT_NAMES = (
+    "index1", "index2", "index3", "middle1", "middle2", "middle3", "pinky1", "pinky2", "pinky3",
+    "ring1", "ring2", "ring3", "thumb1", "thumb2", "thumb3",
+)  # fmt: skip
+FINGERS = ("thumb", "index", "middle", "ring", "pinky")
+HAND_POSE_DIM = 90
+
+# The 54-joint tree of a body with fingers: SMPL's 24 joints, then the left hand's 15 (MANO order), then
+# the right hand's. A finger's first joint hangs from SMPL's hand joint (22 / 23), the thumb's from the
+# wrist (20 / 21): SMPL's hand joint keeps turning the four fingers as it always did, and in SMPL-H /
+# SMPL-X data (which have no joints 22 / 23) it is zero, so the fingers hang from the wrist.
+HAND_PARENTS = SMPL_PARENTS + tuple(
+    (hand if name[-1] == "1" and name != "thumb1" else wrist if name == "thumb1" else 24 + 15 * side + k - 1)
+    for side, (wrist, hand) in enumerate(((20, 22), (21, 23)))
+    for k, name in enumerate(HAND_JOINT_NAMES)
+)
+
+# MediaPipe's 21 hand landmarks per hand: the wrist, then per finger (thumb, index, middle, ring, pinky)
+# its three joints from the palm out and its tip. ``BodyOutput.hand_points`` follows this order.
+HAND_POINT_NAMES = ("wrist",) + tuple(f"{f}{k}" for f in FINGERS for k in ("1", "2", "3", "_tip"))
+
+
 @dataclass
 class BodyOutput:
-    """A posed body: ``vertices [B,V,3]`` and the 24 SMPL(-equivalent) ``joints [B,24,3]`` (float32)."""
+    """A posed body: ``vertices [B,V,3]``, the 24 SMPL(-equivalent) ``joints [B,24,3]`` (float32) and,
+    for bodies with fingers, ``hand_points [B,42,3]``: each hand's 21 points in MediaPipe's order
+    (:data:`HAND_POINT_NAMES`), the left hand's then the right's (None for bodies without fingers)."""
 
     vertices: torch.Tensor
     joints: torch.Tensor
+    hand_points: torch.Tensor | None = None
 
 
 class BodyModel(torch.nn.Module):
@@ -64,7 +92,10 @@ class BodyModel(torch.nn.Module):
         body_pose: torch.Tensor,
         transl: torch.Tensor | None = None,
         check_values: bool = True,
+        hand_pose: torch.Tensor | None = None,
     ) -> BodyOutput:  # pragma: no cover - implemented by subclasses
+        """``hand_pose [B,90]`` (see :data:`HAND_JOINT_NAMES`): None gives the body's relaxed hands
+        (what it always did); bodies without fingers ignore it."""
         raise NotImplementedError
 
     def joint_weights(self) -> torch.Tensor:  # pragma: no cover - implemented by subclasses
@@ -120,6 +151,22 @@ def check_pose_inputs(
         if check_values and value is not None and not bool(torch.isfinite(value).all()):
             raise UserError(f"{name} contains NaN or infinite values")
     return betas, global_orient, body_pose, transl
+
+
+def check_hand_pose(hand_pose, batch: int, dtype: torch.dtype, device: torch.device,
+                    check_values: bool = True) -> torch.Tensor | None:
+    """``hand_pose`` as a ``[batch, 90]`` tensor (None stays None); UserError naming what is wrong."""
+    if hand_pose is None:
+        return None
+    hand_pose = _as_tensor(hand_pose, "hand_pose", dtype, device)
+    if hand_pose.ndim != 2 or hand_pose.shape != (batch, HAND_POSE_DIM):
+        raise UserError(
+            f"hand_pose must have shape [{batch}, {HAND_POSE_DIM}] (left then right hand, 15 joints x 3 "
+            f"axis-angle values each, MANO order), got {list(hand_pose.shape)}"
+        )
+    if check_values and not bool(torch.isfinite(hand_pose).all()):
+        raise UserError("hand_pose contains NaN or infinite values")
+    return hand_pose
 
 
 def _as_tensor(value, name: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:

@@ -1,8 +1,9 @@
 """Sequences of SMPL-format poses and the posed body they give.
 
 ``PoseSequence`` holds global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors, SMPL's
-conventions); :func:`posed_vertices` runs a body model over it in chunks; :func:`rest_pose` gives the
-canonical standing poses.
+conventions) and, where the source has them, hand_pose [N,90] (MANO's 15 joints per hand, left then
+right: :data:`rmavatar.body.base.HAND_JOINT_NAMES`); :func:`posed_vertices` runs a body model over it
+in chunks; :func:`rest_pose` gives the canonical standing poses.
 """
 
 from __future__ import annotations
@@ -17,27 +18,31 @@ from rmavatar.utils import UserError
 
 @dataclass
 class PoseSequence:
-    """SMPL-convention poses: global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors)."""
+    """SMPL-convention poses: global_orient [N,3], body_pose [N,69], transl [N,3] (float32 tensors);
+    hand_pose [N,90] or None (no finger data: each body shows its relaxed hands)."""
 
     global_orient: torch.Tensor
     body_pose: torch.Tensor
     transl: torch.Tensor
+    hand_pose: torch.Tensor | None = None
 
     @classmethod
-    def from_arrays(cls, global_orient, body_pose, transl) -> "PoseSequence":
+    def from_arrays(cls, global_orient, body_pose, transl, hand_pose=None) -> "PoseSequence":
         """From numpy arrays or tensors (e.g. a dataset split's ``params``), as float32 tensors."""
         t = lambda a: torch.as_tensor(np.asarray(a, np.float32) if not torch.is_tensor(a) else a,  # noqa: E731
                                       dtype=torch.float32)
-        return cls(t(global_orient), t(body_pose), t(transl))
+        return cls(t(global_orient), t(body_pose), t(transl), None if hand_pose is None else t(hand_pose))
 
     def __len__(self) -> int:
         return int(self.global_orient.shape[0])
 
     def select(self, index) -> "PoseSequence":
-        return PoseSequence(self.global_orient[index], self.body_pose[index], self.transl[index])
+        hands = None if self.hand_pose is None else self.hand_pose[index]
+        return PoseSequence(self.global_orient[index], self.body_pose[index], self.transl[index], hands)
 
     def to(self, device) -> "PoseSequence":
-        return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device))
+        hands = None if self.hand_pose is None else self.hand_pose.to(device)
+        return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device), hands)
 
     def joint_rotvecs(self) -> torch.Tensor:
         """[N,24,3]: the global orientation, then the 23 body joints, as axis-angle vectors."""
@@ -74,5 +79,5 @@ def posed_vertices(body, poses: PoseSequence, betas: torch.Tensor | None = None,
     for s in range(0, len(poses), chunk):
         part = poses.select(slice(s, s + chunk))
         b = betas[s:s + chunk] if betas is not None and betas.shape[0] > 1 else betas
-        out.append(body(b, part.global_orient, part.body_pose, part.transl).vertices.float())
+        out.append(body(b, part.global_orient, part.body_pose, part.transl, hand_pose=part.hand_pose).vertices.float())
     return torch.cat(out, 0)

@@ -219,8 +219,9 @@ class SmplBody(BodyModel):
         file = find_smpl_file(path, gender)
         return cls(read_smpl_file(file), file, gender)
 
-    def forward(self, betas, global_orient, body_pose, transl=None, check_values=True) -> BodyOutput:
-        """SMPL parameters -> ``vertices [B,6890,3]``, ``joints [B,24,3]``; betas may have fewer columns."""
+    def forward(self, betas, global_orient, body_pose, transl=None, check_values=True, hand_pose=None) -> BodyOutput:
+        """SMPL parameters -> ``vertices [B,6890,3]``, ``joints [B,24,3]``; betas may have fewer columns.
+        SMPL has no fingers: ``hand_pose`` is ignored."""
         dtype, device = self.v_template.dtype, self.v_template.device
         betas, global_orient, body_pose, transl = check_pose_inputs(
             betas, global_orient, body_pose, transl, self.num_betas, dtype, device, check_values
