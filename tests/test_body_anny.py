@@ -149,3 +149,112 @@ def test_presets_and_gender():
     child = load_body_model("anny:child").v_template
     adult = load_body_model("anny:neutral").v_template
     assert (child[:, 1].max() - child[:, 1].min()) < (adult[:, 1].max() - adult[:, 1].min()) - 0.15
+
+
+# ---------------------------------------------------------------------------------------------- fingers
+def _flat_and_turned(body, joint: int, rotvec):
+    """The body at zero pose with a flat hand, and with hand joint ``joint`` turned by ``rotvec``."""
+    z3, z69 = torch.zeros(1, 3), torch.zeros(1, 69)
+    flat = torch.zeros(1, 90)
+    turned = flat.clone()
+    turned[0, 3 * joint:3 * joint + 3] = torch.as_tensor(rotvec)
+    with torch.no_grad():
+        return (body(None, z3, z69, z3, hand_pose=flat), body(None, z3, z69, z3, hand_pose=turned),
+                body.bone_rotations(z3, z69, flat), body.bone_rotations(z3, z69, turned))
+
+
+def _subtree(labels: list[str], parents: list[int], root: str) -> set[str]:
+    """``root`` and every bone below it, from anny's own skeleton."""
+    out = {root}
+    for name, p in zip(labels[1:], parents[1:]):
+        if p >= 0 and labels[p] in out:
+            out.add(name)
+    return out
+
+
+@pytest.fixture(scope="module")
+def anny_skeleton():
+    """Bone names, parents and skinning weights [V,104] as anny's own model has them."""
+    anny = pytest.importorskip("anny")
+    model = anny.Anny(skinning_method="lbs")
+    labels = list(model.bone_labels)
+    parents = [-1] + [int(p) for p in model.bone_parents[1:]]
+    weights = torch.zeros(model.vertex_bone_indices.shape[0], len(labels), dtype=torch.float64)
+    weights.scatter_add_(1, model.vertex_bone_indices.long(), model.vertex_bone_weights.double())
+    return labels, parents, weights
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("joint, bone", [(1, "finger2-2.L"), (3, "finger3-1.L"), (8, "finger5-3.L"),
+                                         (9, "finger4-1.L"), (12, "finger1-1.L"), (15 + 1, "finger2-2.R"),
+                                         (15 + 13, "finger1-2.R"), (15 + 6, "finger5-1.R")])
+def test_hand_joint_turns_its_anny_bones(body, anny_skeleton, joint, bone):
+    """MANO joint -> Anny bone (names from anny's own skeleton): turning the joint turns exactly that
+    bone and the bones below it, about the joint's head, in world axes; vertices that anny skins only to
+    them turn rigidly with them, vertices it skins to none of them stay."""
+    from rmavatar.body.anny import hand_bone
+    from rmavatar.body.base import HAND_POINT_NAMES, HAND_JOINT_NAMES
+
+    labels, parents, weights = anny_skeleton
+    assert hand_bone(joint) == bone and labels == body.bone_names
+    rotvec = np.array([0.3, -0.8, 0.5])
+    R = torch.tensor(Rotation.from_rotvec(rotvec).as_matrix(), dtype=torch.float32)
+    flat, turned, L0, L1 = _flat_and_turned(body, joint, rotvec)
+    # world rotations of every Anny bone, composed independently of the retargeting code
+    G0, G1 = L0[0].clone(), L1[0].clone()
+    for b in range(1, len(labels)):
+        G0[b] = G0[parents[b]] @ L0[0, b]
+        G1[b] = G1[parents[b]] @ L1[0, b]
+    moved = _subtree(labels, parents, bone)
+    for b, name in enumerate(labels):
+        expected = R @ G0[b] if name in moved else G0[b]
+        assert torch.allclose(G1[b], expected, atol=1e-5), name
+    # the joint's head, from the hand points: wrist, then 4 points per finger (joints 1-3, tip)
+    side, k = divmod(joint, 15)
+    name = HAND_JOINT_NAMES[k]
+    at = side * 21 + HAND_POINT_NAMES.index(name[:-1] + name[-1])
+    h = flat.hand_points[0, at]
+    share = weights[:, [labels.index(n) for n in moved]].sum(1)
+    rigid = share > 1 - 1e-6
+    still = share < 1e-9
+    assert rigid.sum() > 20 and still.sum() > 10000
+    v0, v1 = flat.vertices[0], turned.vertices[0]
+    assert (v1[rigid] - ((v0[rigid] - h) @ R.T + h)).norm(dim=-1).max() < 1e-5
+    assert (v1[still] - v0[still]).norm(dim=-1).max() < 1e-6
+
+
+def test_no_hand_pose_is_the_relaxed_hand(body):
+    """hand_pose None = the relaxed hand pose given explicitly (Anny's rest fingers, as before hands)."""
+    gen = torch.Generator().manual_seed(3)
+    go, bp = torch.randn(2, 3, generator=gen), 0.3 * torch.randn(2, 69, generator=gen)
+    none = body(None, go, bp)
+    relaxed = body(None, go, bp, hand_pose=body.relaxed_hand_pose.expand(2, -1))
+    assert (none.vertices - relaxed.vertices).abs().max() < 1e-5
+    assert body.relaxed_hand_pose.abs().max() > 0.1  # the rest fingers are curled a little, not flat
+
+
+def test_flat_hand_is_straight_and_smpl_hand_joint_still_turns_fingers(body):
+    """Zero hand pose: every finger's joints and tip on one line. SMPL's hand joint (22 / 23) turns
+    the four fingers but not the thumb, with or without a hand pose."""
+    z3, z69 = torch.zeros(1, 3), torch.zeros(1, 69)
+    points = body(None, z3, z69, z3, hand_pose=torch.zeros(1, 90)).hand_points[0].reshape(2, 21, 3).numpy()
+    for hand in points:
+        for f in range(5):
+            bones = np.diff(hand[1 + 4 * f:5 + 4 * f], axis=0)
+            assert _angles(bones[:-1], bones[1:]).max() < 0.5
+    bp = z69.clone()
+    bp[0, 3 * 21:3 * 22] = torch.tensor([0.0, 0.0, 0.7])  # joint 22, the left hand
+    for hands in (None, torch.zeros(1, 90)):
+        a = body(None, z3, z69, z3, hand_pose=hands).hand_points[0, :21]
+        b = body(None, z3, bp, z3, hand_pose=hands).hand_points[0, :21]
+        moved = (a - b).norm(dim=-1) > 1e-4
+        assert not moved[:5].any() and moved[[8, 12, 16, 20]].all()
+
+
+def test_hand_pose_checked(body):
+    from rmavatar.utils import UserError
+
+    with pytest.raises(UserError, match=r"hand_pose must have shape \[1, 90\]"):
+        body(None, torch.zeros(1, 3), torch.zeros(1, 69), hand_pose=torch.zeros(1, 45))
+    with pytest.raises(UserError, match="hand_pose contains NaN"):
+        body(None, torch.zeros(1, 3), torch.zeros(1, 69), hand_pose=torch.full((1, 90), float("nan")))

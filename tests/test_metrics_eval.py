@@ -204,7 +204,7 @@ def test_runs_own_data_is_recognised_by_resolved_path(tmp_path, monkeypatch):
     n = 2
     p = params(n, 1)
     refined = PoseSequence.from_arrays(p["global_orient"] + 0.1, p["body_pose"], p["transl"])
-    run = SimpleNamespace(training_poses=refined, training_split="train", data_spec=str(data))
+    run = SimpleNamespace(training_poses=refined, training_split="train", data_spec=str(data), config={})
     for spec in ("DATA/", "./DATA", str(data) + "/", f"native:{data}", "sub/../DATA"):
         (tmp_path / "sub").mkdir(exist_ok=True)
         ev = _Evaluation(run, SimpleNamespace(root=data), spec, "train", n, n, {**p, "index": np.arange(n)},

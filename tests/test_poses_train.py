@@ -371,8 +371,8 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
             seen.append((iteration, before, after, _image_error(avatar, body, betas, frames, before),
                          _image_error(avatar, body, betas, frames, after)))
 
-    def hold(self, poses):  # the held bodies and face tables are posed again from the refitted poses
-        original_hold(self, poses)
+    def hold(self, poses, pose_input):  # the held bodies and face tables are posed again from the refitted poses
+        original_hold(self, poses, pose_input)
         betas = self.dataset.params("train")["betas"]
         torch.testing.assert_close(self.vertices, posed_vertices(self.body, poses, betas), atol=0, rtol=0)
         if self.face_tables is not None:

@@ -22,6 +22,7 @@ from torch import nn
 from rmavatar.avatar.compose import compose_gaussians
 from rmavatar.avatar.geometry import FaceTable, triangle_frames
 from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
+from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.utils import UserError
 from rmavatar.utils.config import check_fields
@@ -59,6 +60,10 @@ class AvatarConfig:
     # "local": a face's Gaussians see joint j's pose when j's skinning weight on one of the face's
     # corners exceeds this.
     rectifier_mask_threshold: float = 0.01
+    # The rectifier also sees the 90 finger pose values (its pose input is body_pose then hand_pose, 159
+    # values; "local": a hand's faces see the finger joints that skin them). For data with finger poses;
+    # needs a body with fingers (Anny).
+    hand_pose: bool = False
     num_freqs: int = 6  # frequency bands of the rectifier's positional encoding (6 * num_freqs channels)
     hidden: int = 128  # width of the rectifier MLP's hidden layers
     # Arithmetic of the rectifier's hidden layers: "float32", or "bfloat16" (faster on CPUs with bf16
@@ -112,13 +117,24 @@ class AvatarConfig:
         for the local rectifier); ``seed`` draws the in-triangle positions of area placement;
         ``init_colors`` [3] or [F,3] per face."""
         return Avatar(body.faces, getattr(body, "binding_faces", None), body.v_template, self, init_colors,
-                      seed=seed, joint_weights=self.body_joint_weights(body))
+                      seed=seed, joint_weights=self.body_joint_weights(body), relaxed_hand_pose=self.relaxed_hands(body))
 
     def body_joint_weights(self, body) -> torch.Tensor | None:
         """What the avatar needs of ``body``'s skinning weights: [V,24] for a design that masks the pose
-        by them (the local rectifier), else None."""
+        by them (the local rectifier; [V,54] with ``hand_pose``: the finger joints apart), else None."""
         design = rectifier_design(self.rectifier)
-        return body.joint_weights() if design is not None and design.needs_joint_weights else None
+        if design is None or not design.needs_joint_weights:
+            return None
+        return body.joint_weights(hands=True) if self.hand_pose else body.joint_weights()
+
+    def relaxed_hands(self, body) -> torch.Tensor | None:
+        """``body``'s relaxed hand pose [90] (what the rectifier sees where no hand pose is given) with
+        ``hand_pose``, else None; UserError for a body without fingers."""
+        if not self.hand_pose or self.rectifier is False:
+            return None
+        if getattr(body, "relaxed_hand_pose", None) is None:
+            raise UserError(f"model.hand_pose needs a body with fingers (anny); {body.spec} has none")
+        return body.relaxed_hand_pose.detach().cpu()
 
 
 @dataclass
@@ -223,6 +239,10 @@ class Avatar(nn.Module):
     [V,24], the body's skinning weights per SMPL joint, required): pose_masks [U,69] (the distinct
     sets of pose values faces see) and face_pose_group [F] (every face's row of pose_masks).
     ``rectifier``: the design (a ``rectifier.RectifierDesign``, which holds the MLP) or None.
+
+    The rectifier's pose input (``body_pose`` in the methods below) has ``pose_dim`` values: body_pose
+    [69], followed by hand_pose [90] when ``config.hand_pose`` (then pose_masks are [U,159] and
+    ``relaxed_hand_pose`` [90] is the body's relaxed hands); :meth:`pose_input` builds it.
     """
 
     def __init__(
@@ -234,6 +254,7 @@ class Avatar(nn.Module):
         init_colors: torch.Tensor | None = None,
         seed: int = 0,
         joint_weights: torch.Tensor | None = None,
+        relaxed_hand_pose: torch.Tensor | None = None,
     ):
         super().__init__()
         config = (config or AvatarConfig()).validate()
@@ -241,7 +262,7 @@ class Avatar(nn.Module):
         faces, binding_faces, v_template = _mesh_tensors(faces, binding_faces, v_template)
         self._init_mesh(faces, binding_faces, v_template)
         self._init_gaussians(v_template, config, init_colors, seed)
-        self._init_rectifier(config, joint_weights)
+        self._init_rectifier(config, joint_weights, relaxed_hand_pose)
 
     def _init_mesh(self, faces, binding_faces, v_template):
         """The mesh buffers: the faces, the binding faces and what the rest mesh gives."""
@@ -275,10 +296,17 @@ class Avatar(nn.Module):
         self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).unsqueeze(1))
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3))
 
-    def _init_rectifier(self, config, joint_weights):
+    def _init_rectifier(self, config, joint_weights, relaxed_hand_pose):
         """The rectifier design that ``config.rectifier`` names (None: none), and its pose masks."""
         design = rectifier_design(config.rectifier)
-        self.rectifier = None if design is None else design(config.num_freqs, config.hidden,
+        hands = design is not None and config.hand_pose
+        self.pose_dim = POSE_DIM + (HAND_POSE_DIM if hands else 0)
+        if hands:
+            if relaxed_hand_pose is None:
+                raise UserError("model.hand_pose needs a body with fingers (anny)")
+            self.register_buffer("relaxed_hand_pose", torch.as_tensor(relaxed_hand_pose, dtype=torch.float32),
+                                 persistent=False)
+        self.rectifier = None if design is None else design(config.num_freqs, config.hidden, pose_dim=self.pose_dim,
                                                             precision=config.rectifier_precision)
         # Which pose values each face's Gaussians see, where the design masks the pose (buffers of the
         # avatar, so checkpoints keep them under "pose_masks" / "face_pose_group").
@@ -309,7 +337,8 @@ class Avatar(nn.Module):
                 f"than the body model given ({body_faces.shape[0]} faces)"
             )
         avatar = cls(body.faces, getattr(body, "binding_faces", None), body.v_template,
-                     dataclasses.replace(config, placement="face"), joint_weights=config.body_joint_weights(body))
+                     dataclasses.replace(config, placement="face"), joint_weights=config.body_joint_weights(body),
+                     relaxed_hand_pose=config.relaxed_hands(body))
         avatar.config = config
         try:
             avatar.load_state_dict(sd)
@@ -425,6 +454,15 @@ class Avatar(nn.Module):
             raise ValueError("some Gaussians are attached to faces outside binding_faces")
         return slot
 
+    def pose_input(self, body_pose: torch.Tensor, hand_pose: torch.Tensor | None = None) -> torch.Tensor:
+        """The rectifier's pose input ``[..., pose_dim]`` from ``body_pose [..., 69]`` and ``hand_pose
+        [..., 90]`` (None: the relaxed hands): body_pose itself unless the rectifier sees the hands."""
+        if self.pose_dim == POSE_DIM:
+            return body_pose
+        if hand_pose is None:
+            hand_pose = self.relaxed_hand_pose.expand(*body_pose.shape[:-1], HAND_POSE_DIM)
+        return torch.cat([body_pose, hand_pose.to(body_pose)], -1)
+
     def rectify(self, vertices: torch.Tensor, body_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The rectifier's raw outputs (d_mu, d_s, d_r) for a posed mesh ``vertices`` [V,3] and
         ``body_pose`` [69]: in the triangles' frames for the local design, in world units for the
@@ -441,10 +479,11 @@ class Avatar(nn.Module):
         """The design's raw outputs for face rows ``g`` (None where the design does not read the posed
         mesh) and ``slot`` as from :meth:`_posed`, after checking ``body_pose``."""
         if body_pose is None:
-            raise ValueError("this avatar has a rectifier: forward needs body_pose [69]")
+            raise ValueError(f"this avatar has a rectifier: forward needs its pose input [{self.pose_dim}]")
         body_pose = torch.as_tensor(body_pose, dtype=self.means.dtype, device=self.means.device).reshape(-1)
-        if body_pose.numel() != POSE_DIM:
-            raise ValueError(f"body_pose must have {POSE_DIM} values, got {body_pose.numel()}")
+        if body_pose.numel() != self.pose_dim:
+            raise ValueError(f"the rectifier's pose input must have {self.pose_dim} values (pose_input), "
+                             f"got {body_pose.numel()}")
         return self.rectifier.rectify(self, g, slot, body_pose)
 
     def forward(self, vertices: torch.Tensor | None, body_pose: torch.Tensor | None = None,

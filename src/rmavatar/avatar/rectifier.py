@@ -382,11 +382,11 @@ class LocalRectifier(RectifierDesign):
         if joint_weights is None:
             raise UserError("model.rectifier 'local' needs the body model's skinning weights (joint_weights)")
         jw = torch.as_tensor(joint_weights, dtype=torch.float32)
-        if jw.shape != (num_vertices, 24):
-            raise UserError(f"joint_weights must be [V={num_vertices},24], got {tuple(jw.shape)}")
-        # Joint 0 is the global orientation, not part of the 69 pose values (and a local rectifier
-        # must not depend on which way the body faces).
-        seen = jw.to(faces.device)[faces].amax(1)[:, 1:] > threshold  # [F,23]
+        if jw.shape != (num_vertices, 1 + self.pose_dim // 3):
+            raise UserError(f"joint_weights must be [V={num_vertices},{1 + self.pose_dim // 3}], got {tuple(jw.shape)}")
+        # Joint 0 is the global orientation, not part of the pose values (and a local rectifier must not
+        # depend on which way the body faces); with hands, the 30 finger joints follow SMPL's 23.
+        seen = jw.to(faces.device)[faces].amax(1)[:, 1:] > threshold  # [F,23] (or [F,53])
         masks, group = torch.unique(seen, dim=0, return_inverse=True)
         return masks.repeat_interleave(3, dim=1).float(), group
 

@@ -27,7 +27,7 @@ from rmavatar.utils.graphs import Replay
 class TrainedAvatar:
     """A trained avatar bound to its body model, in evaluation mode.
 
-    avatar: the :class:`Avatar` (``avatar(vertices [V,3], body_pose [69]) -> GaussianSet``); body: the
+    avatar: the :class:`Avatar` (``avatar(vertices [V,3], pose_input) -> GaussianSet``); body: the
     BodyModel; betas [1,nb] the body shape it was trained with (None: the body's own shape);
     iteration: training iterations done; data_spec: the dataset it was trained on; size: the image size
     it was trained at (None: the dataset's own); config: the training config as plain dicts;
@@ -92,10 +92,14 @@ class TrainedAvatar:
         return self.body(betas, zero, torch.zeros(1, 69, device=self.device), zero).joints[0, 0].float().cpu()
 
     @torch.no_grad()
-    def gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor) -> GaussianSet:
-        """World-space Gaussians on posed ``vertices`` [V,3], rectified for ``body_pose`` [69]
-        (every stored SH band)."""
-        return self.avatar.world_gaussians(vertices.to(self.device), body_pose.reshape(69).to(self.device))
+    def gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor,
+                  hand_pose: torch.Tensor | None = None) -> GaussianSet:
+        """World-space Gaussians on posed ``vertices`` [V,3], rectified for ``body_pose`` [69] and
+        ``hand_pose`` [90] (None: relaxed hands; read only by an avatar whose rectifier sees the hands),
+        every stored SH band."""
+        hands = None if hand_pose is None else hand_pose.reshape(90).to(self.device)
+        pose = self.avatar.pose_input(body_pose.reshape(69).to(self.device), hands)
+        return self.avatar.world_gaussians(vertices.to(self.device), pose)
 
     def pose(self, poses: PoseSequence, i: int, keep: bool = True) -> GaussianSet:
         """The GaussianSet of frame ``i`` of ``poses``: body, mesh embedding and rectifier, replayed as one
@@ -128,7 +132,8 @@ class TrainedAvatar:
         hands = hand_pose if hand_pose.shape[1] else None
         vertices = self.body(betas, global_orient, body_pose, transl, check_values=False,
                              hand_pose=hands).vertices.float()[0]
-        gs = self.avatar.world_gaussians(vertices, body_pose.reshape(69))
+        gs = self.avatar.world_gaussians(vertices, self.avatar.pose_input(body_pose.reshape(69),
+                                                                            None if hands is None else hands[0]))
         return (gs.means, gs.quats, gs.scales, gs.opacities, gs.sh) + (() if gs.frames is None else (gs.frames,))
 
     @torch.no_grad()
@@ -163,7 +168,8 @@ def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu")
     if ckpt.poses is not None:
         base = ckpt.poses["base"]
         training_poses = apply_pose_corrections(
-            PoseSequence(base["global_orient"], base["body_pose"], base["transl"]), ckpt.poses["delta"])
+            PoseSequence(base["global_orient"], base["body_pose"], base["transl"], base.get("hand_pose")),
+            ckpt.poses["delta"])
     return TrainedAvatar(
         avatar=avatar.to(device), body=body.to(device),
         betas=None if betas is None else torch.as_tensor(betas, dtype=torch.float32).to(device),

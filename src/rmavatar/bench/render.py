@@ -32,7 +32,7 @@ def _poses(trained, motion: str | None):
         seq = trained.training_poses
     else:
         p = load_dataset(trained.data_spec).params(trained.training_split)
-        seq = PoseSequence.from_arrays(p["global_orient"], p["body_pose"], p["transl"])
+        seq = PoseSequence.from_params(p)
     return recenter_motion(seq, trained.root_rest())
 
 
@@ -76,7 +76,7 @@ def measure(trained, seq, size: int, frames: int, warmup: int, graph: bool = Tru
             with _maybe(stages["mesh_embedding"], timed):
                 av.posed(vertices)
             with _maybe(stages["rectifier"], timed):  # the whole forward minus the embedding timed above
-                gs = trained.gaussians(vertices, one.body_pose[0])
+                gs = trained.gaussians(vertices, one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
             with _maybe(stages["colors_rasterize"], timed):
                 draw(gs)
     split = {name: c.result()["wall_s"] for name, c in stages.items()}

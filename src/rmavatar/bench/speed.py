@@ -167,7 +167,7 @@ def bench_rendering(trained, data: str, sizes: list[int], ref_size: int, repeats
     from rmavatar.render.reference import reference_rasterize
 
     params = load_dataset(data).params("train")
-    seq = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    seq = PoseSequence.from_params(params)
     seq = recenter_motion(seq, trained.root_rest())
     center, distance = frame_the_body(trained.vertices(seq), VideoOptions())
     view = preset_viewmat("front", center, distance)
@@ -185,7 +185,7 @@ def bench_rendering(trained, data: str, sizes: list[int], ref_size: int, repeats
                 with stages["body_forward"] if timed else nullcontext():
                     vertices = trained.vertices(one)[0]
                 with stages["gaussians"] if timed else nullcontext():  # mesh embedding + rectifier
-                    gs = trained.gaussians(vertices, one.body_pose[0])
+                    gs = trained.gaussians(vertices, one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
                 with stages["rasterize"] if timed else nullcontext():
                     raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view, K, size, size,
                            background=bg)

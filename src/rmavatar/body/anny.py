@@ -318,12 +318,15 @@ class AnnyBody(BodyModel):
         V = verts.shape[0]
         dense = torch.zeros(V, J, dtype=torch.float32)
         dense.scatter_add_(1, tensors["skin_indices"].long(), tensors["skin_weights"].float())
+        # Without a hand pose the fingers are posed as before hand poses existed, on SMPL's 24 joints (to
+        # the bit: runs made then resume to the same numbers)
+        self.register_buffer("relaxed_source", torch.tensor(source), persistent=False)
+        self.register_buffer("relaxed_correction", torch.tensor(Q, dtype=torch.float32), persistent=False)
         relaxed, tips = _flat_fingers(source, Q, heads, verts, dense.numpy(), bone)
         self.register_buffer("source_joint", torch.tensor(source), persistent=False)
         self.register_buffer("rest_correction", torch.tensor(Q, dtype=torch.float32), persistent=False)
         self.register_buffer("joint_bones", torch.tensor([bone[n] for n in SMPL_TO_ANNY]), persistent=False)
         self.register_buffer("pelvis", torch.tensor(SMPL_REST_JOINTS[0], dtype=torch.float32), persistent=False)
-        self.register_buffer("relaxed_hands", torch.tensor(relaxed, dtype=torch.float32), persistent=False)
         self.register_buffer("relaxed_hand_pose", torch.tensor(
             Rotation.from_matrix(relaxed).as_rotvec().reshape(-1), dtype=torch.float32), persistent=False)
         hand_point_bones = [bone[f"wrist.{side}"] if k == 0 else bone[f"finger{ANNY_FINGER[FINGERS[(k - 1) // 4]]}-{(k - 1) % 4 + 1}.{side}"]
@@ -345,16 +348,17 @@ class AnnyBody(BodyModel):
             canonical = self.forward(None, zero, torch.zeros(1, 69), zero).vertices[0]
         self.register_buffer("v_template", canonical, persistent=False)
 
-    def joint_weights(self) -> torch.Tensor:
+    def joint_weights(self, hands: bool = False) -> torch.Tensor:
         """``[V,24]``: each Anny bone's skinning weight counted for the SMPL joint that drives it
         (``source_joint``; a finger joint counts for its SMPL ancestor, the hand or the wrist), so a
-        joint's column is the share of the vertex that its rotation moves."""
-        ancestor = [j for j in range(24)] + [HAND_PARENTS[24 + 15 * s] if k == 0 else 0 for s in range(2)
-                                             for k in range(15)]  # fmt: skip
-        for j in range(24, len(HAND_PARENTS)):  # a finger's later joints count for its first one's ancestor
-            p = HAND_PARENTS[j]
-            ancestor[j] = ancestor[p] if p >= 24 else p
-        drive = torch.zeros(len(self.bone_names), 24, device=self.skin_weights.device)
+        joint's column is the share of the vertex that its rotation moves. ``hands``: ``[V,54]``, the
+        finger joints apart."""
+        ancestor = list(range(len(HAND_PARENTS)))
+        if not hands:
+            for j in range(24, len(HAND_PARENTS)):  # parents come first: a finger's root is resolved already
+                p = HAND_PARENTS[j]
+                ancestor[j] = ancestor[p] if p >= 24 else p
+        drive = torch.zeros(len(self.bone_names), 54 if hands else 24, device=self.skin_weights.device)
         drive[torch.arange(len(self.bone_names)), torch.tensor(ancestor)[self.source_joint.cpu()]] = 1.0
         return self.skin_weights @ drive
 
@@ -364,11 +368,12 @@ class AnnyBody(BodyModel):
         bone rotations ``[B,104,3,3]`` (our frame)."""
         local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], 1).reshape(-1, 24, 3))
         if hand_pose is None:
-            hands = self.relaxed_hands.expand(local.shape[0], -1, -1, -1)
+            G_smpl = global_rotations(local, SMPL_PARENTS)
+            G = G_smpl[:, self.relaxed_source] @ self.relaxed_correction  # world rotation of each Anny bone
         else:
             hands = axis_angle_to_matrix(hand_pose.reshape(-1, 30, 3))
-        G_smpl = global_rotations(torch.cat([local, hands], 1), HAND_PARENTS)
-        G = G_smpl[:, self.source_joint] @ self.rest_correction  # world rotation of each Anny bone
+            G_smpl = global_rotations(torch.cat([local, hands], 1), HAND_PARENTS)
+            G = G_smpl[:, self.source_joint] @ self.rest_correction
         parents = constant((0, *self.bone_parents[1:]), torch.long, G.device)
         L = G[:, parents].transpose(-1, -2) @ G
         return torch.cat([G[:, :1], L[:, 1:]], 1)

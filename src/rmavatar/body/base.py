@@ -98,9 +98,10 @@ class BodyModel(torch.nn.Module):
         (what it always did); bodies without fingers ignore it."""
         raise NotImplementedError
 
-    def joint_weights(self) -> torch.Tensor:  # pragma: no cover - implemented by subclasses
+    def joint_weights(self, hands: bool = False) -> torch.Tensor:  # pragma: no cover - implemented by subclasses
         """Skinning weights per vertex and SMPL joint ``[V,24]`` (rows sum to 1): how much each of the
-        24 joints' world transforms moves each vertex of ``v_template``."""
+        24 joints' world transforms moves each vertex of ``v_template``; a body with fingers counts them
+        for their hand, or with ``hands`` gives ``[V,54]``: the 30 finger joints (``HAND_PARENTS``) apart."""
         raise NotImplementedError
 
 

@@ -36,7 +36,8 @@ def apply_pose_corrections(poses: PoseSequence, delta: torch.Tensor) -> PoseSequ
         raise ValueError(f"delta must be [{n},{CORRECTION_DIM}], got {tuple(delta.shape)}")
     rot = poses.joint_rotvecs().to(delta.dtype)
     fixed = roma.rotvec_composition([delta[:, : NUM_JOINTS * 3].reshape(n, NUM_JOINTS, 3), rot])
-    return PoseSequence(fixed[:, 0], fixed[:, 1:].reshape(n, 69), poses.transl.to(delta.dtype) + delta[:, -3:])
+    return PoseSequence(fixed[:, 0], fixed[:, 1:].reshape(n, 69), poses.transl.to(delta.dtype) + delta[:, -3:],
+                        poses.hand_pose)
 
 
 def pose_corrections(base: PoseSequence, target: PoseSequence) -> torch.Tensor:
@@ -117,7 +118,7 @@ def smooth_poses(poses: PoseSequence, frame_ids, radius: int, sigma_deg: float =
     rotvec = roma.rotmat_to_rotvec(mean).reshape(n, NUM_JOINTS * 3)
     back = torch.argsort(order)
     rotvec, transl = rotvec[back].float(), (t_total / weight_sum[:, :1])[back].float()
-    return PoseSequence(rotvec[:, :3], rotvec[:, 3:], transl)
+    return PoseSequence(rotvec[:, :3], rotvec[:, 3:], transl, poses.hand_pose)
 
 
 def pose_error(a: PoseSequence, b: PoseSequence) -> dict:

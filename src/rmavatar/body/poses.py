@@ -33,6 +33,11 @@ class PoseSequence:
                                       dtype=torch.float32)
         return cls(t(global_orient), t(body_pose), t(transl), None if hand_pose is None else t(hand_pose))
 
+    @classmethod
+    def from_params(cls, params) -> "PoseSequence":
+        """From a dataset split's ``params`` (``Dataset.params``): its hand poses where it has them."""
+        return cls.from_arrays(params["global_orient"], params["body_pose"], params["transl"], params.get("hand_pose"))
+
     def __len__(self) -> int:
         return int(self.global_orient.shape[0])
 

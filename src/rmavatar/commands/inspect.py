@@ -73,6 +73,11 @@ def _print(summary: dict) -> None:
         print(f"  {'':<11} global_orient min {g['min']} max {g['max']} deg; body_pose |max| "
               f"{p['body_pose_abs_max_deg']} deg, |mean| {p['body_pose_abs_mean_deg']} deg; "
               f"{p['distinct_betas']} distinct betas")
+        hands = p.get("hands")
+        if hands is not None:
+            found = hands.get("hand_found_share")
+            seen = "" if found is None else f"; left hand found in {found[0]:.0%} of frames, right {found[1]:.0%}"
+            print(f"  {'':<11} finger poses: |max| {hands['hand_pose_abs_max_deg']} deg{seen}")
 
 
 def _video_frames(ds) -> dict | None:

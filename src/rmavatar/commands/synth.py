@@ -33,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose-noise", type=float, default=0.0, metavar="DEG",
                         help="tracker-like noise (degrees, per axis) on the stored poses; images are unaffected")
     parser.add_argument("--ss", type=int, default=3, help="supersampling: samples per pixel side (default 3)")
+    parser.add_argument("--hand-motion", action="store_true",
+                        help="the fingers move (open, fist, pointing, spread) and their poses are stored as "
+                             "hand_pose; without it the hands stay relaxed")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite_argument(parser)
 
@@ -42,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = SynthConfig(size=args.size, seed=args.seed, preset=args.preset, train=args.train, test=args.test,
                       novel_pose=args.novel_pose, novel_views=args.novel_views, turns=args.turns,
-                      pose_noise=args.pose_noise, ss=args.ss)  # fmt: skip
+                      pose_noise=args.pose_noise, ss=args.ss, hand_motion=args.hand_motion)  # fmt: skip
     summary = synthesize(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     frames = ", ".join(f"{k} {v}" for k, v in summary["frames"].items())
     print(f"wrote {summary['out']} ({frames}) in {summary['seconds']:.1f} s")

@@ -29,7 +29,9 @@ class FrameRecord:
 
     index: the frame's number in the source; image: its image file; masks: one or more mask files
     (several are united: ZJU's mask/ and mask_cihp/); camera at the source resolution;
-    betas [10], global_orient [3], body_pose [69], transl [3] float32.
+    betas [10], global_orient [3], body_pose [69], transl [3] float32; hand_pose [90] float32 (MANO
+    order, left then right hand) and hand_found [2] bool (which hands a capture saw) where the source has
+    finger poses, else None.
     """
 
     index: int
@@ -40,6 +42,8 @@ class FrameRecord:
     global_orient: np.ndarray
     body_pose: np.ndarray
     transl: np.ndarray
+    hand_pose: np.ndarray | None = None
+    hand_found: np.ndarray | None = None
 
 
 def target_size(width: int, height: int, size) -> tuple[int, int]:
@@ -107,22 +111,27 @@ class Dataset:
 
     def params(self, split: str) -> dict[str, np.ndarray]:
         """The split's SMPL-format parameters stacked: betas [n,10], global_orient [n,3],
-        body_pose [n,69], transl [n,3], index [n] (source frame numbers)."""
+        body_pose [n,69], transl [n,3], index [n] (source frame numbers), and hand_pose [n,90] and
+        hand_found [n,2] where the dataset has finger poses."""
         recs = self._record_list(split)
-        return {
+        out = {
             "betas": np.stack([r.betas for r in recs]),
             "global_orient": np.stack([r.global_orient for r in recs]),
             "body_pose": np.stack([r.body_pose for r in recs]),
             "transl": np.stack([r.transl for r in recs]),
             "index": np.array([r.index for r in recs], dtype=np.int64),
         }
+        for key in ("hand_pose", "hand_found"):
+            if all(getattr(r, key) is not None for r in recs):
+                out[key] = np.stack([getattr(r, key) for r in recs])
+        return out
 
     def frame(self, split: str, i: int) -> Frame:
         rec = self._record(split, i)
         image, mask = self._pixels(rec)
         return Frame(image=image, mask=mask, camera=rec.camera.resized(*self.image_size),
                      betas=rec.betas, global_orient=rec.global_orient, body_pose=rec.body_pose,
-                     transl=rec.transl, index=rec.index, split=split)
+                     transl=rec.transl, index=rec.index, split=split, hand_pose=rec.hand_pose)
 
     def frames(self, split: str, n: int | None = None) -> "FrameView":
         """The split's first ``n`` frames (default all) as a sequence whose frames are decoded when

@@ -7,7 +7,9 @@ A folder::
                   poses: given | estimated (optional, default given), extra: {free-form provenance}
     cameras.npz   K [N,3,3] or [3,3] (one camera for all frames), viewmat [N,4,4] or [4,4]
                   (world-to-camera, OpenCV axes, metres); float32
-    smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32
+    smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32;
+                  optional finger poses: hand_pose [N,90] float32 (per hand 15 joints x 3 axis-angle, MANO
+                  order, left hand then right) and hand_found [N,2] bool (a capture saw that hand)
     images/00000.png ...   8-bit RGB, frame i is f"{i:05d}.png"
     masks/00000.png  ...   8-bit grey, 0-255 soft foreground coverage
 
@@ -41,6 +43,7 @@ GENDERS = ("male", "female", "neutral")
 # by `rmavatar capture`; what pose refinement during training switches on by).
 POSE_SOURCES = ("given", "estimated")
 PARAM_KEYS = ("betas", "global_orient", "body_pose", "transl")
+HAND_KEYS = ("hand_pose", "hand_found")  # optional in smpl.npz; hand_found needs hand_pose
 
 
 @dataclass
@@ -116,6 +119,20 @@ def _check_params(params, where: str) -> dict[str, np.ndarray]:
         if n < 0 or out[key].shape != shape:
             raise UserError(f"{where}: '{key}' must be [N,{shape[1]}] with N frames as global_orient, "
                             f"got {list(out[key].shape)}")
+    get = params.get if isinstance(params, Mapping) else lambda key: getattr(params, key, None)
+    if get("hand_pose") is not None:
+        out["hand_pose"] = np.asarray(get("hand_pose"), dtype=np.float32)
+        if out["hand_pose"].shape != (n, 90):
+            raise UserError(f"{where}: 'hand_pose' must be [N,90] (15 joints x 3 per hand, left then right) "
+                            f"with N frames as global_orient, got {list(out['hand_pose'].shape)}")
+    if get("hand_found") is not None:
+        if "hand_pose" not in out:
+            raise UserError(f"{where}: 'hand_found' is given without 'hand_pose'")
+        found = np.asarray(get("hand_found"))
+        if found.shape != (n, 2) or found.dtype.kind not in "bui":
+            raise UserError(f"{where}: 'hand_found' must be [N,2] booleans (left, right hand seen), got "
+                            f"{list(found.shape)} {found.dtype}")
+        out["hand_found"] = found.astype(bool)
     betas = out["betas"]
     if betas.ndim == 2 and betas.shape[0] == 1:
         betas = betas[0]
@@ -437,7 +454,8 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
             recs.append(FrameRecord(
                 index=i, image=root / "images" / f"{i:05d}.png", masks=(root / "masks" / f"{i:05d}.png",),
                 camera=cameras[i], betas=np.array(betas[i]), global_orient=p["global_orient"][i],
-                body_pose=p["body_pose"][i], transl=p["transl"][i]))
+                body_pose=p["body_pose"][i], transl=p["transl"][i],
+                **{k: p[k][i] for k in HAND_KEYS if k in p}))
         records[split] = recs
     return Dataset(kind="native", name=doc["name"], root=root, records=records,
                    source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
@@ -472,7 +490,8 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
         for i in range(ds.num_frames(split)):
             rec = ds._record(split, i)
             key = (str(rec.image), rec.betas.tobytes(), rec.global_orient.tobytes(), rec.body_pose.tobytes(),
-                   rec.transl.tobytes(), rec.camera.K.tobytes(), rec.camera.viewmat.tobytes())
+                   rec.transl.tobytes(), rec.camera.K.tobytes(), rec.camera.viewmat.tobytes(),
+                   None if rec.hand_pose is None else rec.hand_pose.tobytes())
             if key not in seen:
                 seen[key] = len(entries)
                 entries.append((split, i))
@@ -482,6 +501,9 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
     cameras = [ds.camera(s, i) for s, i in entries]
     recs = [ds._record(s, i) for s, i in entries]
     params = {key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}
+    for key in HAND_KEYS:
+        if all(getattr(r, key) is not None for r in recs):
+            params[key] = np.stack([getattr(r, key) for r in recs])
     frames_a, frames_b = itertools.tee(ds.frame(s, i) for s, i in entries)
     meta = NativeMeta(name=name or ds.name, splits=splits, fps=ds.fps if ds.fps is not None else 30.0,
                       gender=ds.gender, body=ds.body, poses_estimated=ds.poses_estimated,

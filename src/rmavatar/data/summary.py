@@ -49,6 +49,11 @@ def summarize(ds) -> dict:
             "betas_mean": p["betas"].astype(np.float64).mean(0).round(4).tolist(),
             "distinct_betas": int(len(np.unique(p["betas"].round(6), axis=0))),
         }
+        if "hand_pose" in p:  # finger poses: how far they bend, and how often a capture saw each hand
+            hands = {"hand_pose_abs_max_deg": round(float(np.degrees(np.abs(p["hand_pose"]).max())), 2)}
+            if "hand_found" in p:
+                hands["hand_found_share"] = p["hand_found"].mean(0).round(3).tolist()
+            out["poses"][s]["hands"] = hands
     return out
 
 
@@ -59,7 +64,8 @@ def _frame_vertices(body, frame) -> np.ndarray:
     if nb > 0:
         betas = np.zeros((1, nb), np.float32)
         betas[0, : min(nb, 10)] = frame.betas[:nb]
-    poses = PoseSequence.from_arrays(frame.global_orient[None], frame.body_pose[None], frame.transl[None])
+    hands = None if frame.hand_pose is None else frame.hand_pose[None]
+    poses = PoseSequence.from_arrays(frame.global_orient[None], frame.body_pose[None], frame.transl[None], hands)
     return posed_vertices(body, poses, betas)[0].cpu().numpy()
 
 

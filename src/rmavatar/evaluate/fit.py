@@ -123,7 +123,8 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
         for p, flag in frozen:
             p.requires_grad_(flag)
         avatar.train(was_training)
-    return PoseSequence(*(torch.cat([getattr(p, k) for p in out]) for k in ("global_orient", "body_pose", "transl")))
+    fitted = (torch.cat([getattr(p, k) for p in out]) for k in ("global_orient", "body_pose", "transl"))
+    return PoseSequence(*fitted, poses.hand_pose)  # the fingers are not fitted
 
 
 def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: PoseFitConfig) -> PoseSequence:
@@ -146,16 +147,18 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
             pooled = {"k": pool, "targets": [_pooled(t, pool) for t in targets],
                       "masks": [_pooled(m, pool) for m in masks]}
         fitted = apply_pose_corrections(poses, delta)
-        vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl).vertices.float()
+        vertices = body(betas, fitted.global_orient, fitted.body_pose, fitted.transl,
+                        hand_pose=fitted.hand_pose).vertices.float()
         loss = 0.0
         for k in range(b):
             # The rectifier's output and the view-dependent colours send no gradient to the pose; held
             # fixed between refreshes, a step costs the mesh embedding and the rasterizer only.
             refresh = step % cfg.refresh == 0
+            pose = avatar.pose_input(fitted.body_pose[k], None if fitted.hand_pose is None else fitted.hand_pose[k])
             if refresh and avatar.rectifier is not None:
                 with torch.no_grad():
-                    rectified[k] = avatar.rectify(vertices[k], fitted.body_pose[k])
-            drawn = render_frame(avatar, vertices[k], fitted.body_pose[k], cams[k], background,
+                    rectified[k] = avatar.rectify(vertices[k], pose)
+            drawn = render_frame(avatar, vertices[k], pose, cams[k], background,
                                  rectified=rectified[k], colors=None if refresh else colors[k], hold_colors=True)
             colors[k] = drawn.colors
             loss = loss + (_pooled(drawn.image, pool) - pooled["targets"][k]).abs().mean() \

@@ -159,7 +159,9 @@ def _choose_poses(ev: _Evaluation, fit, progress: bool):
     from rmavatar.data.synth import true_poses
 
     run, params, n = ev.run, ev.params, ev.n
-    given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+    given = PoseSequence.from_params(params)
+    if not run.config.get("data", {}).get("hand_pose", True):  # trained with relaxed hands: shown so
+        given.hand_pose = None
     poses, pose_source = given, "the dataset's"
     from rmavatar.data.registry import same_dataset
 
@@ -214,7 +216,8 @@ def _render_and_target(ev: _Evaluation, poses, i: int):
     frame = ev.dataset.frame(ev.split, i)
     one = poses.select(slice(i, i + 1))
     verts = posed_vertices(ev.run.body, one, ev.params["betas"][i : i + 1])[0]  # the frame's own shape
-    drawn = render_frame(ev.run.avatar, verts, one.body_pose[0].to(ev.device), frame.camera, ev.background)
+    pose = ev.run.avatar.pose_input(one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
+    drawn = render_frame(ev.run.avatar, verts, pose.to(ev.device), frame.camera, ev.background)
     mask = torch.tensor(frame.mask, dtype=torch.float32, device=ev.device)
     target = composite(torch.tensor(frame.image, dtype=torch.float32, device=ev.device), mask, ev.background)
     return frame, drawn.image.clamp(0.0, 1.0), target

@@ -45,6 +45,9 @@ class DataConfig:
     path: str = ""  # dataset spec as given to rmavatar.data.load_dataset (stored absolute)
     size: int | None = None  # square image size the frames are resampled to; None = native
     split: str = "train"  # the dataset split to train on
+    # pose the fingers with the dataset's hand poses where it has them (false: relaxed hands, as before
+    # hand poses existed; evaluation on the run's data follows the same choice)
+    hand_pose: bool = True
 
     def validate(self) -> "DataConfig":
         check_fields(self, "data")

@@ -15,6 +15,7 @@ indexing and its shapes never depend on the frame (a step can be captured once a
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 import torch
@@ -177,12 +178,13 @@ class FrameCache:
     def __len__(self) -> int:
         return len(self.cameras)
 
-    def hold(self, poses: PoseSequence) -> None:
-        """Pose every frame's body once for ``poses``: ``vertices``, ``body_pose`` (and the face tables,
-        when cached)."""
+    def hold(self, poses: PoseSequence, pose_input: Callable) -> None:
+        """Pose every frame's body once for ``poses``: ``vertices``, ``body_pose`` (the rectifier's pose
+        input, ``pose_input(body_pose, hand_pose)``: the avatar's ``Avatar.pose_input``) and the face
+        tables, when cached."""
         betas = self.dataset.params(self.split)["betas"]
         self.vertices = posed_vertices(self.body, poses, betas).to(self.device)
-        self.body_pose = poses.body_pose.to(self.device)
+        self.body_pose = pose_input(poses.body_pose, poses.hand_pose).to(self.device)
         if self.face_tables is not None:
             self.face_tables = self._face_tables()
 
@@ -237,7 +239,8 @@ class FrameCache:
         return torch.stack([self.avatar.face_table(v) for v in self.vertices])
 
     def held(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """Frame ``i``'s held body: vertices [V,3], body_pose [69] and its face table (None: not cached)."""
+        """Frame ``i``'s held body: vertices [V,3], the rectifier's pose input and its face table (None:
+        not cached)."""
         return self.vertices[i], self.body_pose[i], None if self.face_tables is None else self.face_tables[i]
 
     def target(self, i: int, bg: torch.Tensor) -> torch.Tensor:

@@ -163,12 +163,14 @@ class PoseRefinement:
         self.refiner.set_poses(fitted)
         return self.refiner.poses() if self.held else None
 
-    def frame_body(self, body, i: int, iteration: int):
-        """Frame ``i``'s corrected body (vertices [V,3], body_pose [69], None) at step ``iteration``, or
-        None while the corrections are not trained (warm-up, second pass): then the held body is used."""
+    def frame_body(self, posed_body, i: int, iteration: int):
+        """Frame ``i``'s corrected body (vertices [V,3], the rectifier's pose input, None) at step
+        ``iteration``, or None while the corrections are not trained (warm-up, second pass): then the held
+        body is used. ``posed_body``: :func:`rmavatar.train.poses.pose_corrected` with its body and the
+        avatar's pose input bound."""
         if not self.refiner.active(iteration):
             return None
-        return (*self.refiner.posed(body, i), None)
+        return (*posed_body(*self.refiner.frame_inputs(i)), None)
 
     def frame_inputs(self, i: int, iteration: int) -> tuple[torch.Tensor, ...] | None:
         """What :func:`rmavatar.train.poses.pose_corrected` takes to pose frame ``i``'s corrected body at
@@ -216,7 +218,7 @@ class PoseFiles:
 
         params = dataset.params(split)
         self.split, self.index = split, params["index"]
-        self.given = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+        self.given = PoseSequence.from_params(params)
         self.true = true_poses(dataset, split)
 
     def write(self, run: RunFolder, iteration: int, refinement: PoseRefinement | None) -> dict | None:

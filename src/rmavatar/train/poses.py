@@ -15,6 +15,7 @@ warm-up, then a log-linear decay) are in :class:`rmavatar.train.pose_refine.Pose
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -54,18 +55,13 @@ class PoseRefiner:
         """Whether step ``iteration`` (1-based) trains the corrections (after the frozen warm-up)."""
         return not self.frozen and iteration > self.cfg.warmup_steps(self.iters)
 
-    def posed(self, body, i: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Frame ``i``'s corrected body: vertices [V,3] (differentiable in ``delta``) and body_pose [69]
-        for the rectifier. The rectifier sees the corrected pose but sends no gradient into it: the
-        corrections are to align the body with the image, not to suit the MLP."""
-        return pose_corrected(body, *self.frame_inputs(i))
-
     def frame_inputs(self, i: int) -> tuple[torch.Tensor, ...]:
         """What :func:`pose_corrected` takes for frame ``i``: its correction row [1,75] (a view of
         ``delta``, so gradients reach it), its base global_orient [1,3], body_pose [1,69], transl [1,3],
-        and its betas [1,nb] when the body has a shape."""
+        hand_pose [1,90] ([1,0] without finger poses), and its betas [1,nb] when the body has a shape."""
         base = self.base.select(slice(i, i + 1))
-        rows = (self.delta[i : i + 1], base.global_orient, base.body_pose, base.transl)
+        hands = base.hand_pose if base.hand_pose is not None else base.transl.new_zeros(1, 0)
+        rows = (self.delta[i : i + 1], base.global_orient, base.body_pose, base.transl, hands)
         return rows if self.betas is None else (*rows, self.betas[i : i + 1])
 
     def zero_grad(self) -> None:
@@ -109,7 +105,8 @@ class PoseRefiner:
         cpu = lambda t: t.detach().cpu().clone()  # noqa: E731
         return {
             "base": {"global_orient": cpu(self.base.global_orient), "body_pose": cpu(self.base.body_pose),
-                     "transl": cpu(self.base.transl)},
+                     "transl": cpu(self.base.transl),
+                     **({} if self.base.hand_pose is None else {"hand_pose": cpu(self.base.hand_pose)})},
             "delta": cpu(self.delta), "exp_avg": cpu(self.exp_avg), "exp_avg_sq": cpu(self.exp_avg_sq),
             "steps": cpu(self.steps),
         }  # fmt: skip
@@ -134,11 +131,14 @@ class PoseRefiner:
 
 def write_poses(path, poses: PoseSequence, index: np.ndarray, split: str) -> None:
     """The refined training poses as ``RUN/poses.npz`` (written atomically): global_orient [n,3],
-    body_pose [n,69], transl [n,3], index [n] (the dataset's frame numbers), split."""
+    body_pose [n,69], transl [n,3], hand_pose [n,90] (where the data has finger poses; not refined),
+    index [n] (the dataset's frame numbers), split."""
+    hands = {} if poses.hand_pose is None else {"hand_pose": poses.hand_pose.numpy()}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, global_orient=poses.global_orient.numpy(), body_pose=poses.body_pose.numpy(),
-                     transl=poses.transl.numpy(), index=np.asarray(index, np.int64), split=np.array(split))
+                     transl=poses.transl.numpy(), index=np.asarray(index, np.int64), split=np.array(split),
+                     **hands)
 
 
 def read_poses(path: Path, index: np.ndarray, split: str) -> PoseSequence:
@@ -148,17 +148,22 @@ def read_poses(path: Path, index: np.ndarray, split: str) -> PoseSequence:
     with np.load(path) as f:
         if str(f["split"]) != split or not np.array_equal(f["index"], index):
             raise UserError(f"{path} holds the poses of other frames than this run's {len(index)} {split!r} frames")
-        return PoseSequence.from_arrays(f["global_orient"], f["body_pose"], f["transl"])
+        return PoseSequence.from_params(f)
 
 
-def pose_corrected(body, delta: torch.Tensor, global_orient: torch.Tensor, body_pose: torch.Tensor,
-                   transl: torch.Tensor, betas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def pose_corrected(body, pose_input: Callable, delta: torch.Tensor, global_orient: torch.Tensor,
+                   body_pose: torch.Tensor, transl: torch.Tensor, hand_pose: torch.Tensor,
+                   betas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """One frame's body posed with its correction ``delta`` [1,75] applied to its base pose
-    (global_orient [1,3], body_pose [1,69], transl [1,3]): vertices [V,3], differentiable in ``delta``,
-    and the corrected body_pose [69] without gradient (:meth:`PoseRefiner.posed`). Tensor operations only:
-    a CUDA step replays it in a graph with the avatar's posing."""
+    (global_orient [1,3], body_pose [1,69], transl [1,3]; hand_pose [1,90], or [1,0] for none, is not
+    corrected): vertices [V,3], differentiable in ``delta``, and the rectifier's pose input
+    (``pose_input(body_pose [69], hand_pose [90] | None)``, the avatar's ``pose_input``) of the corrected
+    pose, without gradient: the corrections are to align the body with the image, not to suit the MLP.
+    Tensor operations only: a CUDA step replays it in a graph with the avatar's posing."""
     one = apply_pose_corrections(PoseSequence(global_orient, body_pose, transl), delta)
+    hands = hand_pose if hand_pose.shape[1] else None
     # NaN/inf are caught by the trainer's one device-side check (the Gaussians and every gradient)
-    vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False).vertices[0].float()
-    return vertices, one.body_pose[0].detach()
+    vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False,
+                    hand_pose=hands).vertices[0].float()
+    return vertices, pose_input(one.body_pose[0].detach(), None if hands is None else hands[0])
 

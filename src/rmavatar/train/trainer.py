@@ -77,7 +77,9 @@ class Trainer:
         self.body, self.body_info = load_body(cfg, self.dataset, ckpt, where)
         self.body.to(self.device)
         self.betas = training_betas(params) if self.body.num_betas > 0 else None  # the shape a trained avatar keeps
-        poses = PoseSequence.from_arrays(params["global_orient"], params["body_pose"], params["transl"])
+        poses = PoseSequence.from_params(params)
+        if not cfg.data.hand_pose:
+            poses.hand_pose = None
         if cfg.poses.refines(estimated):  # refinement starts from the smoothed poses
             poses = smooth_poses(poses, params["index"], cfg.poses.smooth)
         self.frames = FrameCache(self.dataset, split, self.body, self.device)
@@ -93,7 +95,7 @@ class Trainer:
         self.density = cfg.density.build(self.avatar, self.optimizer, cfg.optim.iters, seed=cfg.seed)
         self.guard = NonFiniteGuard(self.device, cfg.log.max_bad_steps)
         self.graphs = StepGraphs(self.avatar, cfg.loss, cfg.cuda_graphs)
-        self._pose_corrected = functools.partial(pose_corrected, self.body)
+        self._pose_corrected = functools.partial(pose_corrected, self.body, self.avatar.pose_input)
         self.poses = None
         if cfg.poses.refines(estimated):
             held = cfg.poses.first_pass_iters(cfg.optim.iters, estimated) > 0  # the second of two passes
@@ -111,7 +113,7 @@ class Trainer:
             print(f"resuming {self.run_folder.path} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
         if self.poses is not None:
             poses = self.poses.start_poses(poses, self.run_folder.pose_pass, params["index"], split, ckpt is not None)
-        self.frames.hold(poses)
+        self.frames.hold(poses, self.avatar.pose_input)
         self.ckpt = None  # free the loaded tensors
         self.frames.fill(self.avatar, cfg.background, bool(cfg.loss.lpips), self.bg_generator, FRAME_CACHE_BYTES,
                          cfg.loss.lpips_region)
@@ -175,7 +177,7 @@ class Trainer:
     def frame_body(self, i: int, iteration: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Vertices [V,3], body_pose [69] and face table (or None: to be computed) of training frame ``i``
         at step ``iteration``: the held ones, or the pose refinement's corrected body."""
-        corrected = None if self.poses is None else self.poses.frame_body(self.body, i, iteration)
+        corrected = None if self.poses is None else self.poses.frame_body(self._pose_corrected, i, iteration)
         return corrected or self.frames.held(i)
 
     def run(self) -> TrainResult:
@@ -192,7 +194,7 @@ class Trainer:
                     held = self.poses.before_step(self.iteration, self.avatar, self.body, self.frames.frames(),
                                                   self.frames.fit_background(cfg.background))
                     if held is not None:
-                        self.frames.hold(held)
+                        self.frames.hold(held, self.avatar.pose_input)
                 out = self.step()
                 self.iteration += 1
                 report.step(self.iteration, out, self.avatar.num_gaussians, self.guard, self.save)

@@ -38,6 +38,7 @@ class SynthConfig:
     ss: int = 3  # supersampling: samples per pixel side (anti-aliasing)
     distance: float = 3.6  # metres from the camera to the person
     fps: float = 7.5  # frame rate stored in meta.yaml (PeopleSnapshot's 30 fps subsampled by 4)
+    hand_motion: bool = False  # fingers open, close, point and spread (finger poses stored as hand_pose)
 
     def check(self) -> None:
         if not 16 <= self.size <= MAX_SIZE:
@@ -75,18 +76,24 @@ class Shot:
     K: np.ndarray
     viewmat: np.ndarray
     split: str
+    hand_pose: np.ndarray | None = None
 
 
-def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52)) -> list[Shot]:
+def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52), hand_axes=None) -> list[Shot]:
     """The frames in output order: train, test (the turn's contiguous tail, as in PeopleSnapshot),
     novel_pose, then novel_view. Poses are noise-free. Deterministic for ``cfg.seed``.
-    ``body_y``: the standing body's lowest and highest y (m), for framing."""
-    from rmavatar.data.synth.motion import look_at, novel_motion, turn_motion
+    ``body_y``: the standing body's lowest and highest y (m), for framing; ``hand_axes``: the body's
+    :class:`~rmavatar.body.hands.HandAxes`, needed with ``cfg.hand_motion``."""
+    from rmavatar.data.synth.motion import finger_motion, look_at, novel_motion, turn_motion
 
     rng = np.random.default_rng([cfg.seed, 1])
     n_turn = cfg.train + cfg.test
     turn = turn_motion(n_turn, cfg.turns, rng)
     novel = novel_motion(max(cfg.novel_pose, 1), rng)
+    for motion in (turn, novel):  # a stream of its own: the body's motion stays what it was without hands
+        hands = np.random.default_rng([cfg.seed, 3, len(motion["transl"])])
+        n_motion = len(motion["transl"])
+        motion["hand_pose"] = finger_motion(n_motion, hand_axes, hands) if cfg.hand_motion else [None] * n_motion
     S = cfg.size
     # Framing: 115% of the body's height (room for raised arms) fill 90% of the image.
     lo, hi = body_y
@@ -98,10 +105,11 @@ def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52)) -> list[
     shots = []
     for i in range(n_turn):
         split = "train" if i < cfg.train else "test"
-        shots.append(Shot(turn["global_orient"][i], turn["body_pose"][i], turn["transl"][i], K, main, split))
+        shots.append(Shot(turn["global_orient"][i], turn["body_pose"][i], turn["transl"][i], K, main, split,
+                          turn["hand_pose"][i]))
     for i in range(cfg.novel_pose):
         shots.append(Shot(novel["global_orient"][i], novel["body_pose"][i], novel["transl"][i], K, main,
-                          "novel_pose"))  # fmt: skip
+                          "novel_pose", novel["hand_pose"][i]))  # fmt: skip
     # Novel views: cameras around the person at other heights; each renders every N-th test pose.
     for c in range(cfg.novel_views):
         az = 2 * np.pi * (c + 1) / (cfg.novel_views + 1)
@@ -110,7 +118,7 @@ def plan(cfg: SynthConfig, body_y: tuple[float, float] = (-1.31, 0.52)) -> list[
         vm = look_at(pos, target)
         for i in range(cfg.train + c, n_turn, cfg.novel_views):
             shots.append(Shot(turn["global_orient"][i], turn["body_pose"][i], turn["transl"][i], K, vm,
-                              "novel_view"))  # fmt: skip
+                              "novel_view", turn["hand_pose"][i]))  # fmt: skip
     return shots
 
 
@@ -126,6 +134,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwri
     from tqdm import tqdm
 
     from rmavatar.body import PoseSequence, load_body_model, posed_vertices
+    from rmavatar.body.hands import hand_axes
     from rmavatar.data.native import NativeMeta, write_native
     from rmavatar.data.synth.motion import add_pose_noise
     from rmavatar.data.synth.render import render
@@ -139,10 +148,12 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwri
     body = load_body_model(f"anny:{cfg.preset}")
     subject = build_subject(body, cfg.seed)
     ys = body.v_template[:, 1]
-    shots = plan(cfg, (float(ys.min()), float(ys.max())))
+    axes = hand_axes(body) if cfg.hand_motion else None
+    shots = plan(cfg, (float(ys.min()), float(ys.max())), axes)
     n = len(shots)
-    true = {k: np.stack([getattr(s, k) for s in shots]) for k in ("global_orient", "body_pose", "transl")}
-    poses = PoseSequence.from_arrays(true["global_orient"], true["body_pose"], true["transl"])
+    keys = ("global_orient", "body_pose", "transl") + (("hand_pose",) if cfg.hand_motion else ())
+    true = {k: np.stack([getattr(s, k) for s in shots]) for k in keys}
+    poses = PoseSequence.from_arrays(true["global_orient"], true["body_pose"], true["transl"], true.get("hand_pose"))
     verts = posed_vertices(body, poses, chunk=64).numpy()
     stored = add_pose_noise(true, cfg.pose_noise, np.random.default_rng([cfg.seed, 2]))
     params = {k: v.astype(np.float32) for k, v in stored.items()}
@@ -198,10 +209,11 @@ def true_poses(dataset, split: str):
     index = dataset.params(split)["index"]
     try:
         with np.load(path) as data:
-            rows = {k: data[k][index] for k in ("global_orient", "body_pose", "transl")}
+            keys = ("global_orient", "body_pose", "transl") + (("hand_pose",) if "hand_pose" in data.files else ())
+            rows = {k: data[k][index] for k in keys}
     except (OSError, ValueError, KeyError, IndexError) as exc:
         raise UserError(f"{path} does not hold the true poses of {dataset.root}'s frames: {exc}") from None
-    return PoseSequence.from_arrays(rows["global_orient"], rows["body_pose"], rows["transl"])
+    return PoseSequence.from_arrays(rows["global_orient"], rows["body_pose"], rows["transl"], rows.get("hand_pose"))
 
 
 def splits_of(i: int, shots: list[Shot]) -> str:

@@ -5,6 +5,7 @@
   round), at a constant turning speed.
 - :func:`novel_motion`: a different motion for the ``novel_pose`` split: walking on the spot while
   slowly turning, then raising the arms sideways and forwards.
+- :func:`finger_motion`: hands that open, close into a fist, point with the index and spread, in turn.
 - :func:`look_at`: an OpenCV world->camera matrix.
 """
 
@@ -120,6 +121,45 @@ def add_pose_noise(params: dict[str, np.ndarray], deg: float, rng: np.random.Gen
         noisy = (Rotation.from_rotvec(noise) * Rotation.from_rotvec(r)).as_rotvec()
         out[key] = noisy.reshape(-1, 3 * k)
     return out
+
+
+# Key hand shapes in degrees: per finger (thumb, index, middle, ring, pinky) the bend of joints 1-3, and
+# the spread of each finger's first joint.
+_THUMB_IN = (20.0, 35.0, 40.0)
+_CURLED = (80.0, 95.0, 60.0)
+HAND_SHAPES = {
+    "open": ([(5.0, 5.0, 5.0)] * 5, [0.0] * 5),
+    "fist": ([_THUMB_IN] + [_CURLED] * 4, [0.0] * 5),
+    "point": ([_THUMB_IN, (0.0, 0.0, 0.0)] + [_CURLED] * 3, [0.0] * 5),
+    "spread": ([(0.0, 0.0, 0.0)] * 5, [20.0, 12.0, 0.0, 10.0, 18.0]),
+}
+_HAND_CYCLE = ("open", "fist", "open", "point", "spread")
+
+
+def finger_motion(n: int, axes, rng: np.random.Generator, frames_per_shape: float = 6.0) -> np.ndarray:
+    """``[n,90]`` hand poses: both hands go through open, fist, open, pointing and spread in turn
+    (``frames_per_shape`` frames from one shape to the next, eased), the right hand half a shape behind
+    the left, with a random start. ``axes``: :class:`rmavatar.body.hands.HandAxes` of the body."""
+    import torch
+
+    from rmavatar.body.hands import hand_pose_from_angles
+
+    shapes = [HAND_SHAPES[name] for name in _HAND_CYCLE]
+    bends = np.deg2rad(np.array([b for b, _ in shapes]))  # [S,5,3]
+    spreads = np.deg2rad(np.array([s for _, s in shapes]))  # [S,5]
+    start = rng.uniform(0, len(shapes))
+    bend = np.zeros((n, 2, 5, 3))
+    spread = np.zeros((n, 2, 5))
+    for hand, lag in ((0, 0.0), (1, 0.5)):
+        phase = start + np.arange(n) / frames_per_shape - lag
+        a = np.floor(phase).astype(int) % len(shapes)
+        b = (a + 1) % len(shapes)
+        w = phase - np.floor(phase)
+        w = (w * w * (3 - 2 * w))[:, None]  # smoothstep: hold a little at each shape
+        bend[:, hand] = (1 - w[..., None]) * bends[a] + w[..., None] * bends[b]
+        spread[:, hand] = (1 - w) * spreads[a] + w * spreads[b]
+    pose = hand_pose_from_angles(torch.from_numpy(bend).float(), torch.from_numpy(spread).float(), axes)
+    return pose.numpy()
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 1.0, 0.0)) -> np.ndarray:
