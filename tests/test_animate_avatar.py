@@ -12,6 +12,7 @@ from rmavatar.animate.camera import intrinsics, look_at
 from rmavatar.animate.jobs import VideoOptions, animate_video, turntable_video
 from rmavatar.avatar import TrainedAvatar
 from rmavatar.body import PoseSequence, motion_to_sequence
+from rmavatar.body.hands import hand_axes, hand_pose_from_angles
 from rmavatar.commands import main
 from rmavatar.export.export import export_ply, pose_for_export
 from rmavatar.export.ply import read_ply
@@ -161,6 +162,43 @@ def test_turntable_front_and_back_mirror(fake_run, tmp_path):
     assert iou > 0.8  # seen from behind, the T-pose silhouette is the mirror image
     assert side.sum() < 0.7 * front.sum()  # from the side the spread arms are hidden
     assert np.abs(frames[0].astype(int) - frames[4]).mean() > 2.0  # but the colours differ
+
+
+# ----------------------------------------------------------------------------------------------- finger poses
+def write_hand_motion(path, body, n=3):
+    """An AMASS SMPL-H file (z-up, 156 values a frame): standing still in the T-pose while both hands go
+    from flat (frame 0) to fists (the last frame)."""
+    bend = torch.linspace(0.0, 1.2, n)[:, None, None, None].expand(n, 2, 5, 3)
+    poses = np.zeros((n, 156))
+    poses[:, 0] = np.pi / 2  # the body's up along +z, as in AMASS
+    poses[:, 66:] = hand_pose_from_angles(bend, torch.zeros(n, 2, 5), hand_axes(body)).numpy()
+    np.savez(path, poses=poses, trans=np.zeros((n, 3)), mocap_framerate=np.array(30.0))
+    return path
+
+
+def test_export_hand_motion_frame_poses_the_fingers(fake_run, tmp_path):
+    motion = write_hand_motion(tmp_path / "hands.npz", fake_run.body)
+    seq = pose_for_export(fake_run, str(motion), 2)
+    export_ply(fake_run, seq, tmp_path / "fists.ply")
+    fists = read_ply(tmp_path / "fists.ply").means
+    relaxed = fake_run.pose(PoseSequence(seq.global_orient, seq.body_pose, seq.transl), 0).means
+    moved = (fists - relaxed).norm(dim=-1)
+    assert float(moved.max()) > 0.03  # the fingers close
+    torso = relaxed[:, 0].abs() < 0.3  # standing in the T-pose: the hands are far out on the sides
+    assert int(torso.sum()) > 1000 and float(moved[torso].max()) < 1e-5
+
+
+def test_animate_hand_motion_moves_only_the_hands(fake_run, tmp_path):
+    from rmavatar.body import load_motion
+
+    seq = motion_to_sequence(load_motion(write_hand_motion(tmp_path / "hands.npz", fake_run.body)))
+    animate_video(fake_run, seq, f"{tmp_path}/frames/", opts=VideoOptions(size=64, progress=False))
+    flat, fists = (imageio.imread(f"{tmp_path}/frames/frame_{i:05d}.png").astype(int) for i in (0, 2))
+    changed = np.abs(flat - fists).max(-1) > 30
+    columns = np.nonzero(changed.any(0))[0]
+    # the body stands still: only the hands, at the two ends of the spread arms, change
+    assert changed.sum() >= 4 and ((columns < 16) | (columns >= 48)).all()
+    assert changed[:, :32].any() and changed[:, 32:].any()
 
 
 # ----------------------------------------------------------------------------------------------- CLI bad input

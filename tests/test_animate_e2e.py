@@ -142,6 +142,35 @@ def test_animate_trained_run_png_orbit(trained_run, tmp_path):
     assert all(mask(i, bg=0).mean() > 0.03 for i in imgs) and (imgs[0][:2, :2] < 15).all()
 
 
+def test_animate_and_export_play_the_finger_poses(trained_run, tmp_path):
+    """An AMASS SMPL-H motion standing still in the T-pose while both hands close into fists: the fingers,
+    and only they, move in ``animate``'s frames and in ``export --motion``'s Gaussians."""
+    from rmavatar.avatar import load_trained
+    from rmavatar.body.hands import hand_axes, hand_pose_from_angles
+    from rmavatar.export import read_ply
+
+    bend = torch.linspace(0.0, 1.2, 3)[:, None, None, None].expand(3, 2, 5, 3)
+    poses = np.zeros((3, 156))
+    poses[:, 0] = math.pi / 2  # the body's up along +z, as in AMASS
+    poses[:, 66:] = hand_pose_from_angles(bend, torch.zeros(3, 2, 5), hand_axes(load_trained(trained_run).body))
+    motion = tmp_path / "fists.npz"
+    np.savez(motion, poses=poses, trans=np.zeros((3, 3)), mocap_framerate=np.array(30.0))
+    out = tmp_path / "frames"
+    assert main(["animate", str(trained_run), "--motion", str(motion), "--out", f"{out}/", "--size", "64"]) == 0
+    keep(out)
+    flat, fists = (imageio.imread(out / f"frame_{i:05d}.png").astype(int) for i in (0, 2))
+    changed = np.abs(flat - fists).max(-1) > 30
+    columns = np.nonzero(changed.any(0))[0]
+    assert changed[:, :32].any() and changed[:, 32:].any() and ((columns < 16) | (columns >= 48)).all()
+    for k in (0, 2):
+        assert main(["export", str(trained_run), "--ply", str(tmp_path / f"f{k}.ply"), "--motion", str(motion),
+                     "--frame", str(k)]) == 0
+    flat, fists = (read_ply(tmp_path / f"f{k}.ply").means for k in (0, 2))
+    moved = (fists - flat).norm(dim=-1)
+    torso = flat[:, 0].abs() < 0.3  # the hands are far out on the sides
+    assert float(moved.max()) > 0.03 and int(torso.sum()) > 1000 and float(moved[torso].max()) < 1e-5
+
+
 def test_animate_bad_inputs_with_trained_run(trained_run, tmp_path, capsys):
     bad = tmp_path / "bad.npy"
     np.save(bad, np.zeros((4, 60), np.float32))

@@ -114,6 +114,14 @@ def test_recenter_motion_upright_facing_in_place(world):
         shift = (after[i] - moved).mean(0)
         torch.testing.assert_close(after[i], moved + shift, atol=1e-5, rtol=0)
     torch.testing.assert_close(out.body_pose, seq.body_pose)
+    assert out.hand_pose is None  # no finger poses: the body's relaxed hands, as before
+
+
+def test_recenter_motion_keeps_the_finger_poses():
+    seq = walking_motion(WORLDS["z-up (AMASS)"])
+    hands = torch.randn(len(seq), 90, generator=torch.Generator().manual_seed(1))
+    out = recenter_motion(PoseSequence(seq.global_orient, seq.body_pose, seq.transl, hands), J0.float())
+    assert torch.equal(out.hand_pose, hands)  # relative to their parents: the turn of the world leaves them
 
 
 def test_rest_poses():
@@ -148,6 +156,15 @@ def test_motion_shape_errors():
         motion_to_sequence(Motion(good.global_orient, good.body_pose, np.zeros((3, 3), np.float32)))
     with pytest.raises(UserError, match="NaN"):
         motion_to_sequence(Motion(good.global_orient, good.body_pose, np.full((4, 3), np.nan, np.float32)))
+    hands = np.ones((4, 90), np.float32)
+    seq = motion_to_sequence(Motion(good.global_orient, good.body_pose, good.transl, hand_pose=hands))
+    assert motion_to_sequence(good).hand_pose is None and torch.equal(seq.hand_pose, torch.ones(4, 90))
+    with pytest.raises(UserError, match=r"hand_pose must have shape \(frames, 90\)"):
+        motion_to_sequence(Motion(good.global_orient, good.body_pose, good.transl, hand_pose=hands[:, :45]))
+    with pytest.raises(UserError, match="different frame counts"):
+        motion_to_sequence(Motion(good.global_orient, good.body_pose, good.transl, hand_pose=hands[:3]))
+    with pytest.raises(UserError, match="hand_pose contains NaN"):
+        motion_to_sequence(Motion(good.global_orient, good.body_pose, good.transl, hand_pose=hands * np.nan))
 
 
 # ----------------------------------------------------------------------------------------------- video

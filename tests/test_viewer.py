@@ -17,7 +17,8 @@ from headless import find_browser, screenshot
 from helpers import dance
 
 from rmavatar.avatar import load_trained
-from rmavatar.body import Motion, motion_to_sequence
+from rmavatar.body import Motion, PoseSequence, motion_to_sequence
+from rmavatar.body.hands import hand_axes, hand_pose_from_angles
 from rmavatar.viewer.app import SH_C0, avatar_viewer, splat_arrays
 
 W, H = 800, 600
@@ -80,6 +81,21 @@ def test_viewer_timeline_and_play(viewer):
         time.sleep(0.005)
     viewer.play.value = False
     assert moved  # playing advanced the timeline
+
+
+def test_viewer_plays_the_finger_poses(trained_run):
+    trained = load_trained(trained_run)
+    bend = torch.linspace(0.0, 1.2, 3)[:, None, None, None].expand(3, 2, 5, 3)
+    hands = hand_pose_from_angles(bend, torch.zeros(3, 2, 5), hand_axes(trained.body))
+    zero = torch.zeros(3, 3)
+    v = avatar_viewer(trained, PoseSequence(zero, torch.zeros(3, 69), zero, hands), port=free_port())
+    try:  # a T-pose closing its hands: the Gaussians the page gets for the first and last frame
+        flat, fists = (v.state.frame_fn(i)[0] for i in (0, 2))
+    finally:
+        v.close()
+    moved = (fists - flat).norm(dim=-1)
+    torso = flat[:, 0].abs() < 0.3  # the hands are far out on the sides
+    assert float(moved.max()) > 0.03 and int(torso.sum()) > 1000 and float(moved[torso].max()) < 1e-6
 
 
 def test_viewer_in_headless_chromium(viewer):

@@ -57,7 +57,8 @@ def upright_rotation(global_orient: torch.Tensor) -> torch.Tensor:
 
 
 def recenter_motion(seq: PoseSequence, root_rest: torch.Tensor) -> PoseSequence:
-    """Poses of ``seq`` made upright, facing +z, with the root kept above the origin.
+    """Poses of ``seq`` made upright, facing +z, with the root kept above the origin (body and finger
+    poses as they are).
 
     ``root_rest`` [3] is the body's root joint in the rest pose (SMPL's transl moves the root from
     there; global_orient rotates about it). The root's horizontal travel is removed frame by frame;
@@ -71,4 +72,6 @@ def recenter_motion(seq: PoseSequence, root_rest: torch.Tensor) -> PoseSequence:
     new_root = torch.zeros_like(root)
     new_root[:, 1] = root[:, 1] - root[:, 1].mean()
     transl = new_root - j0
-    return PoseSequence(orient.float(), seq.body_pose.clone(), transl.float())
+    # the joint rotations, fingers included, are relative to their parents: only the root turns
+    hands = None if seq.hand_pose is None else seq.hand_pose.clone()
+    return PoseSequence(orient.float(), seq.body_pose.clone(), transl.float(), hands)

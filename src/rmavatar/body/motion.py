@@ -5,8 +5,10 @@ Formats read:
 - AIST++ / InstantAvatar ``.npz``: ``poses (N,72)`` (global orient + 23 joints), ``trans (N,3)``,
   optional ``betas``, ``fps`` / ``mocap_framerate``.
 - AMASS ``.npz``: ``poses (N,156)`` SMPL-H (or (N,165) SMPL-X); the first 66 values are SMPL's body
-  joints, SMPL's two hand joints are set to zero; ``trans``, ``betas``, ``mocap_framerate``. AMASS is
-  Z-up: it is turned to SMPL's y-up (-90 degrees about x, about the origin) unless ``keep_up=True``.
+  joints, SMPL's two hand joints are set to zero; the last 90 are the finger poses (``hand_pose``,
+  left hand then right, MANO's joint order); SMPL-X's jaw and eyes in between are dropped. ``trans``,
+  ``betas``, ``mocap_framerate`` (or ``mocap_frame_rate``); ``gender`` is ignored. AMASS is Z-up: it is
+  turned to SMPL's y-up (-90 degrees about x, about the origin) unless ``keep_up=True``.
 - GART-style ``.npy``: an ``(N,72)`` array of poses, no translation (zeros), no frame rate.
 """
 
@@ -25,13 +27,15 @@ from rmavatar.utils.errors import load_error
 @dataclass
 class Motion:
     """An SMPL-format sequence (numpy float32): ``global_orient [N,3]``, ``body_pose [N,69]``,
-    ``transl [N,3]``, ``betas [10]`` or None, ``fps`` or None."""
+    ``transl [N,3]``, ``betas [10]`` or None, ``fps`` or None, ``hand_pose [N,90]`` (SMPL-H / SMPL-X
+    files) or None (the file has no finger poses: bodies show their relaxed hands)."""
 
     global_orient: np.ndarray
     body_pose: np.ndarray
     transl: np.ndarray
     betas: np.ndarray | None = None
     fps: float | None = None
+    hand_pose: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.global_orient)
@@ -84,8 +88,11 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
             f"(AMASS SMPL-H / SMPL-X), got {poses.shape}"
         )
     amass = amass or poses.shape[1] != 72
-    if poses.shape[1] != 72:  # SMPL-H/X: keep the 22 body joints, SMPL's two hand joints stay at rest
-        poses = np.concatenate([poses[:, :66], np.zeros((len(poses), 6))], 1)
+    has_hands = poses.shape[1] != 72
+    if has_hands:
+        # SMPL-H/X: the 22 body joints, then SMPL's two hand joints at rest (SMPL-H / SMPL-X have none;
+        # rmavatar's fingers hang from them), then the fingers: the last 90 values in both layouts
+        poses = np.concatenate([poses[:, :66], np.zeros((len(poses), 6)), poses[:, -90:]], 1)
     if not np.isfinite(poses).all():
         rows = np.nonzero(~np.isfinite(poses).all(1))[0]
         raise UserError(f"motion file {path}: poses contain NaN/inf (first at frame {rows[0]})")
@@ -100,13 +107,14 @@ def load_motion(path: str | Path, keep_up: bool = False) -> Motion:
     if betas is not None:
         betas = _numbers(betas, path, "betas").astype(np.float32).reshape(-1)[:10]
     if amass and not keep_up:
-        poses, trans = _z_up_to_y_up(poses, trans)
+        poses, trans = _z_up_to_y_up(poses, trans)  # the finger poses are relative to their parents: kept
     return Motion(
         global_orient=poses[:, :3].astype(np.float32),
         body_pose=poses[:, 3:72].astype(np.float32),
         transl=trans.astype(np.float32),
         betas=betas,
         fps=fps,
+        hand_pose=poses[:, 72:].astype(np.float32) if has_hands else None,
     )
 
 
@@ -158,14 +166,17 @@ def _z_up_to_y_up(poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def motion_to_sequence(motion, source: str = "motion") -> PoseSequence:
-    """Check a loaded ``Motion``'s arrays and return them as a :class:`PoseSequence`.
+    """Check a loaded ``Motion``'s arrays and return them as a :class:`PoseSequence` (with the finger
+    poses where the motion has them).
 
     ``source`` names the file in error messages.
     """
     arrays = {}
-    for name, width in (("global_orient", 3), ("body_pose", 69), ("transl", 3)):
+    for name, width in (("global_orient", 3), ("body_pose", 69), ("transl", 3), ("hand_pose", 90)):
         a = getattr(motion, name, None)
         if a is None:
+            if name == "hand_pose":  # optional: a motion without fingers
+                continue
             raise UserError(f"{source}: motion has no {name}")
         a = np.asarray(a)
         if a.ndim != 2 or a.shape[1] != width:
@@ -173,11 +184,11 @@ def motion_to_sequence(motion, source: str = "motion") -> PoseSequence:
         arrays[name] = a
     counts = {a.shape[0] for a in arrays.values()}
     if len(counts) != 1:
-        raise UserError(f"{source}: global_orient, body_pose and transl have different frame counts "
+        raise UserError(f"{source}: {', '.join(arrays)} have different frame counts "
                         f"{[a.shape[0] for a in arrays.values()]}")
     if counts.pop() == 0:
         raise UserError(f"{source}: motion has no frames")
     for name, a in arrays.items():
         if not np.all(np.isfinite(a)):
             raise UserError(f"{source}: {name} contains NaN or infinite values")
-    return PoseSequence.from_arrays(arrays["global_orient"], arrays["body_pose"], arrays["transl"])
+    return PoseSequence.from_params(arrays)

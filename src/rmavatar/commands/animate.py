@@ -14,7 +14,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "anything 'rmavatar.body.load_motion' reads) and render it to an MP4 or PNG frames.\n"
         "The motion is turned upright (y-up, z-up and camera-frame motions all work), faces the camera in "
         "its first frame, and its root travel is removed so the person stays in view; the pose-dependent "
-        "rectifier is applied. The avatar keeps its own body shape (the motion's betas are ignored)."
+        "rectifier is applied. The avatar keeps its own body shape (the motion's betas are ignored). AMASS "
+        "SMPL-H / SMPL-X motions pose the fingers too; motions without finger poses leave the hands relaxed."
     )
     parser.epilog = (
         "examples:\n"

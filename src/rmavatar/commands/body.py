@@ -75,12 +75,15 @@ def run(args: argparse.Namespace) -> int:
     body = load_body_model(args.body, args.gender)
     global_orient = torch.zeros(1, 3)
     body_pose = torch.zeros(1, 69)
+    hand_pose = None  # relaxed hands, unless the motion has finger poses
     if args.motion:
         motion = load_motion(args.motion)
         if not 0 <= args.frame < len(motion):
             raise UserError(f"--frame {args.frame} is outside {args.motion} (frames 0..{len(motion) - 1})")
         global_orient = torch.from_numpy(motion.global_orient[args.frame : args.frame + 1])
         body_pose = torch.from_numpy(motion.body_pose[args.frame : args.frame + 1])
+        if motion.hand_pose is not None:
+            hand_pose = torch.from_numpy(motion.hand_pose[args.frame : args.frame + 1])
         if args.orient == "none":
             global_orient = torch.zeros(1, 3)
         elif args.orient == "auto":
@@ -99,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         label = "T-pose"
     with torch.no_grad():
-        out = body(None, global_orient, body_pose, torch.zeros(1, 3))
+        out = body(None, global_orient, body_pose, torch.zeros(1, 3), hand_pose=hand_pose)
     image = render_mesh(out.vertices[0].numpy(), body.faces.numpy(), size=args.size, views=views,
                         points=out.joints[0].numpy())  # fmt: skip
     with output_file(args.out, option="--out", overwrite=args.overwrite, suffixes=(".png",)) as tmp:

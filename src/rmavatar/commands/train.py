@@ -47,6 +47,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "docs/train.md). "
                              "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
+    parser.add_argument("--hand-pose", action=argparse.BooleanOptionalAction, default=None,
+                        help="pose the fingers with the dataset's finger poses (hand_pose in smpl.npz, from "
+                             "rmavatar capture or synth --hand-motion) where it has them; --no-hand-pose: "
+                             "relaxed hands (data.hand_pose; default on; docs/hands.md)")
     parser.add_argument("--bg", choices=("white", "black", "random"), help="background colour (default white)")
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
     parser.add_argument("--checkpoint-every", type=int, metavar="K", help="checkpoint interval in iterations")
@@ -66,7 +70,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, object]:
     out = {}
     plain = [("body", "model.body"), ("iters", "optim.iters"), ("size", "data.size"), ("bg", "background"),
              ("seed", "seed"), ("checkpoint_every", "log.checkpoint_every"), ("threads", "threads"),
-             ("refine_poses", "poses.refine")]
+             ("refine_poses", "poses.refine"), ("hand_pose", "data.hand_pose")]
     for attr, key in plain:
         value = getattr(args, attr, None)
         if value is not None:
