@@ -214,3 +214,108 @@ def tiny_train_config(data, iters: int, *, size: int | None = None, sh_degree: i
     if device is not None:
         cfg.device = device
     return cfg
+
+
+# ----------------------------------------------------------------------------------------------- SMPL-H / SMPL-X files
+# The official kinematic trees, written out (not taken from rmavatar): SMPL's first 22 joints, then
+# SMPL-H's two hands (15 joints each, MANO order) or SMPL-X's jaw, eyes and two hands.
+SMPLH_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19,
+                 20, 22, 23, 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35,
+                 21, 37, 38, 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50)  # fmt: skip
+SMPLX_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+                 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+                 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53)  # fmt: skip
+
+
+def random_smplx(kind: str, num_components: int, seed: int, per_joint: int = 20, hands_mean: bool = True) -> dict:
+    """A tiny random SMPL-H (``kind`` "smplh", 52 joints) or SMPL-X ("smplx", 55) model with the official
+    files' keys: ``per_joint`` vertices per joint, each following its joint with weight > 0.5 (and up to
+    three others a little), ``num_components`` shapedirs columns (SMPL-X: shape then expression),
+    ``hands_meanl/r`` and ``hands_componentsl/r`` (unless not ``hands_mean``), SMPL-X's ``joint2num``."""
+    import scipy.sparse
+
+    parents = np.array(SMPLH_PARENTS if kind == "smplh" else SMPLX_PARENTS, dtype=np.int64)
+    J = len(parents)
+    V = J * per_joint
+    rng = np.random.default_rng(seed)
+    joints = np.zeros((J, 3))
+    for j in range(1, J):
+        joints[j] = joints[parents[j]] + rng.normal(0, 0.15 if j < 22 else 0.03, 3)
+    owner = np.repeat(np.arange(J), per_joint)
+    v_template = joints[owner] + rng.normal(0, 0.02, (V, 3))
+    weights = np.zeros((V, J))
+    rows = np.arange(V)[:, None]
+    others = np.stack([np.maximum(parents[owner], 0), *rng.integers(0, J, (2, V))], 1)
+    weights[rows, others] = rng.random((V, 3))
+    weights[np.arange(V), owner] = 3.0 + rng.random(V)  # more than the three others together: > 0.5
+    weights /= weights.sum(1, keepdims=True)
+    J_regressor = np.zeros((J, V))
+    for j in range(J):
+        w = rng.random(10)
+        J_regressor[j, j * per_joint : j * per_joint + 10] = w / w.sum()
+    kintree = np.stack([parents, np.arange(J)]).astype(np.uint32)
+    kintree[0, 0] = 4294967295
+    model = {
+        "v_template": v_template,
+        "f": rng.integers(0, V, (2 * V, 3)).astype(np.uint32),
+        "shapedirs": rng.normal(0, 0.01, (V, 3, num_components)),
+        "posedirs": rng.normal(0, 0.01, (V, 3, 9 * (J - 1))),
+        "J_regressor": scipy.sparse.csc_matrix(J_regressor),
+        "weights": weights,
+        "kintree_table": kintree,
+        "bs_type": "lrotmin",
+        "bs_style": "lbs",
+    }
+    if hands_mean:
+        for side in "lr":
+            model[f"hands_mean{side}"] = rng.normal(0, 0.3, 45)
+            model[f"hands_components{side}"] = rng.normal(0, 0.3, (45, 45))
+    if kind == "smplx":
+        model["joint2num"] = {f"joint{j}": j for j in range(J)}
+    return model
+
+
+class _Ch:  # stands for chumpy.ch.Ch: its pickled state holds the array under 'x'
+    def __init__(self, x):
+        self.x = x
+
+    def __getstate__(self):
+        return {"x": self.x, "_dirty_vars": set(), "_itr": None}
+
+
+class _CscMatrix:  # stands for python-2-era scipy.sparse.csc.csc_matrix
+    def __init__(self, m):
+        self.__dict__.update(data=m.data, indices=m.indices, indptr=m.indptr, _shape=m.shape, format="csc",
+                             maxprint=50)  # fmt: skip
+
+
+def save_chumpy_pkl(model: dict, path) -> None:
+    """``model`` as the official python-2-era ``.pkl`` holds it: protocol 2, chumpy arrays for
+    v_template / shapedirs / posedirs and an old-path scipy sparse J_regressor (classes faked under their
+    old module paths while pickling)."""
+    import pickle
+    import sys
+    import types
+
+    data = {k: _Ch(v) if k in ("v_template", "shapedirs", "posedirs") else v for k, v in model.items()}
+    data["J_regressor"] = _CscMatrix(model["J_regressor"])
+    fakes = {"chumpy.ch": ("Ch", _Ch), "scipy.sparse.csc": ("csc_matrix", _CscMatrix)}
+    saved = {name: sys.modules.get(name) for name in ("chumpy", "chumpy.ch", "scipy.sparse.csc")}
+    saved_names = {cls: (cls.__module__, cls.__qualname__) for _, cls in fakes.values()}
+    try:
+        sys.modules.setdefault("chumpy", types.ModuleType("chumpy"))
+        for module_name, (name, cls) in fakes.items():
+            module = types.ModuleType(module_name)
+            setattr(module, name, cls)
+            sys.modules[module_name] = module
+            cls.__module__, cls.__qualname__ = module_name, name
+        with open(path, "wb") as fh:
+            pickle.dump(data, fh, protocol=2)
+    finally:
+        for name, module in saved.items():
+            if module is None:
+                sys.modules.pop(name, None)
+            else:
+                sys.modules[name] = module
+        for cls, (module_name, qualname) in saved_names.items():
+            cls.__module__, cls.__qualname__ = module_name, qualname

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import pickle
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -13,59 +10,10 @@ import scipy.sparse
 import torch
 from helpers import SMPL_F as F
 from helpers import SMPL_V as V
-from helpers import random_smpl, save_npz
+from helpers import random_smpl, save_chumpy_pkl, save_npz
 
 from rmavatar.body import load_body_model
 from rmavatar.utils import UserError
-
-
-@contextlib.contextmanager
-def fake_modules(classes: dict):
-    """Put stand-in classes at old module paths (e.g. chumpy.ch.Ch) while pickling."""
-    saved = {}
-    for path, cls in classes.items():
-        module_name, name = path.rsplit(".", 1)
-        parts = module_name.split(".")
-        for k in range(1, len(parts) + 1):
-            prefix = ".".join(parts[:k])
-            if prefix not in sys.modules or k == len(parts):
-                saved.setdefault(prefix, sys.modules.get(prefix))
-                sys.modules[prefix] = sys.modules.get(prefix) if k < len(parts) else types.ModuleType(prefix)
-                if sys.modules[prefix] is None:
-                    sys.modules[prefix] = types.ModuleType(prefix)
-        setattr(sys.modules[module_name], name, cls)
-        cls.__module__, cls.__qualname__ = module_name, name
-    try:
-        yield
-    finally:
-        for module_name, old in saved.items():
-            if old is None:
-                sys.modules.pop(module_name, None)
-            else:
-                sys.modules[module_name] = old
-
-
-class Ch:  # mimics chumpy.ch.Ch: pickled state holds the array under 'x'
-    def __init__(self, x):
-        self.x = x
-
-    def __getstate__(self):
-        return {"x": self.x, "_dirty_vars": set(), "_itr": None}
-
-
-class csc_matrix:  # mimics python-2-era scipy.sparse.csc.csc_matrix state
-    def __init__(self, m):
-        self.__dict__.update(data=m.data, indices=m.indices, indptr=m.indptr, _shape=m.shape, format="csc",
-                             maxprint=50)  # fmt: skip
-
-
-def save_pkl(model: dict, path) -> None:
-    chumpy_keys = ("v_template", "shapedirs", "posedirs")  # as in the official files
-    data = {k: Ch(v) if k in chumpy_keys else v for k, v in model.items()}
-    data["J_regressor"] = csc_matrix(model["J_regressor"])
-    stand_ins = {"chumpy.ch.Ch": Ch, "scipy.sparse.csc.csc_matrix": csc_matrix}
-    with fake_modules(stand_ins), open(path, "wb") as fh:
-        pickle.dump(data, fh, protocol=2)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +21,7 @@ def files(tmp_path_factory):
     root = tmp_path_factory.mktemp("smpl")
     for nb in (10, 300):
         model = random_smpl(nb, seed=nb)
-        save_pkl(model, root / f"m{nb}.pkl")
+        save_chumpy_pkl(model, root / f"m{nb}.pkl")
         save_npz(model, root / f"m{nb}.npz")
     return root
 
@@ -109,7 +57,7 @@ def test_forward_equals_body_models(files, num_betas, suffix):
 
 def test_folder_and_gender(tmp_path, files):
     model = random_smpl(10, seed=3)
-    save_pkl(model, tmp_path / "SMPL_FEMALE.pkl")
+    save_chumpy_pkl(model, tmp_path / "SMPL_FEMALE.pkl")
     save_npz(random_smpl(10, seed=4), tmp_path / "SMPL_NEUTRAL.npz")
     female = load_body_model(f"smpl:{tmp_path}", gender="female")
     assert female.file.name == "SMPL_FEMALE.pkl"

@@ -62,7 +62,7 @@ class AvatarConfig:
     rectifier_mask_threshold: float = 0.01
     # The rectifier also sees the 90 finger pose values (its pose input is body_pose then hand_pose, 159
     # values; "local": a hand's faces see the finger joints that skin them). For data with finger poses;
-    # needs a body with fingers (Anny).
+    # needs a body with fingers (Anny, or an SMPL-H / SMPL-X file).
     hand_pose: bool = False
     num_freqs: int = 6  # frequency bands of the rectifier's positional encoding (6 * num_freqs channels)
     hidden: int = 128  # width of the rectifier MLP's hidden layers
@@ -133,7 +133,8 @@ class AvatarConfig:
         if not self.hand_pose or self.rectifier is False:
             return None
         if getattr(body, "relaxed_hand_pose", None) is None:
-            raise UserError(f"model.hand_pose needs a body with fingers (anny); {body.spec} has none")
+            raise UserError(f"model.hand_pose needs a body with fingers (anny, or an SMPL-H / SMPL-X file); "
+                            f"{body.spec} has none")
         return body.relaxed_hand_pose.detach().cpu()
 
 
@@ -303,7 +304,7 @@ class Avatar(nn.Module):
         self.pose_dim = POSE_DIM + (HAND_POSE_DIM if hands else 0)
         if hands:
             if relaxed_hand_pose is None:
-                raise UserError("model.hand_pose needs a body with fingers (anny)")
+                raise UserError("model.hand_pose needs a body with fingers (anny, or an SMPL-H / SMPL-X file)")
             self.register_buffer("relaxed_hand_pose", torch.as_tensor(relaxed_hand_pose, dtype=torch.float32),
                                  persistent=False)
         self.rectifier = None if design is None else design(config.num_freqs, config.hidden, pose_dim=self.pose_dim,

@@ -28,8 +28,9 @@ def load_body_model(spec: str, gender: str | None = None) -> BodyModel:
 
     - ``"anny"``: the Anny body; the preset follows ``gender`` (``male``/``female``, else ``neutral``).
     - ``"anny:PRESET"``: a named Anny phenotype (``neutral``, ``male``, ``female``, ``child``).
-    - ``"smpl:PATH"``: an SMPL ``.pkl``/``.npz`` file, or a folder holding ``SMPL_{NEUTRAL,MALE,FEMALE}``
-      files (``gender`` picks one; neutral when None).
+    - ``"smpl:PATH"``: an SMPL, SMPL-H or SMPL-X ``.pkl``/``.npz`` file (the kind is read from the file),
+      or a folder holding ``SMPL_{NEUTRAL,MALE,FEMALE}`` files, else ``SMPLX_*`` or ``SMPLH_*`` ones
+      (``gender`` picks one; neutral when None).
     """
     if gender is not None and gender not in _GENDERS:
         raise UserError(f"gender must be one of {', '.join(_GENDERS)} or None, got {gender!r}")

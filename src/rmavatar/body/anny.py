@@ -53,6 +53,7 @@ from rmavatar.body.base import (
     BodyOutput,
     check_hand_pose,
     check_pose_inputs,
+    hand_points,
 )
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
 from rmavatar.utils import UserError, atomic_path, cache_dir
@@ -407,8 +408,5 @@ class AnnyBody(BodyModel):
     def _hand_points(self, heads: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
         """``[B,42,3]`` in MediaPipe's order: bone heads for the wrist and the finger joints, a vertex at
         each fingertip."""
-        points = heads[:, self.hand_point_bones].reshape(-1, 2, 16, 3)  # [B, hand, wrist + 15 joints, xyz]
-        joints = points[:, :, 1:].reshape(-1, 2, 5, 3, 3)  # [B, hand, finger, joint, xyz]
-        tips = vertices[:, self.fingertip_vertices].reshape(-1, 2, 5, 1, 3)
-        fingers = torch.cat([joints, tips], 3).reshape(-1, 2, 20, 3)
-        return torch.cat([points[:, :, :1], fingers], 2).reshape(-1, 42, 3)
+        return hand_points(heads[:, self.hand_point_bones].reshape(-1, 2, 16, 3),
+                           vertices[:, self.fingertip_vertices].reshape(-1, 2, 5, 3))

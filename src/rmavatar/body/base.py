@@ -154,6 +154,13 @@ def check_pose_inputs(
     return betas, global_orient, body_pose, transl
 
 
+def hand_points(points: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
+    """``BodyOutput.hand_points [B,42,3]`` from each hand's wrist and 15 finger joints ``points [B,2,16,3]``
+    (the wrist, then per finger of :data:`FINGERS` its joints 1-3) and fingertips ``tips [B,2,5,3]``."""
+    fingers = torch.cat([points[:, :, 1:].reshape(-1, 2, 5, 3, 3), tips[:, :, :, None]], 3).reshape(-1, 2, 20, 3)
+    return torch.cat([points[:, :, :1], fingers], 2).reshape(-1, 42, 3)
+
+
 def check_hand_pose(hand_pose, batch: int, dtype: torch.dtype, device: torch.device,
                     check_values: bool = True) -> torch.Tensor | None:
     """``hand_pose`` as a ``[batch, 90]`` tensor (None stays None); UserError naming what is wrong."""
