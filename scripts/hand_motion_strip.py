@@ -1,13 +1,14 @@
 """A frame strip of the Anny body driven by a motion file with finger poses, to look at the fingers.
 
-    python scripts/hand_motion_strip.py OUT.png [--motion-out hands.npz] [--body-motion aist_demo.npz]
+    python scripts/hand_motion_strip.py OUT.png [--motion-out hands.npz] [--body-motion aist_demo.npz] [--run RUN]
 
 Writes an AMASS-style SMPL-H motion (``poses [N,156]``, z-up, ``mocap_framerate``) in which both hands go
 open -> fist -> pointing index -> open, reads it back with ``rmavatar.body.load_motion`` (as ``animate``,
 ``export --motion`` and ``view`` do), turns it upright and facing the camera as ``animate`` and ``view``
 do, and draws six frames of the posed Anny mesh: the whole body from the front, then each hand close up
 from the front (the fingers seen bending in profile) and from below (the palm side when standing). The
-body stands with its arms lowered, or moves as the body poses of ``--body-motion``.
+body stands with its arms lowered, or moves as the body poses of ``--body-motion``. With ``--run`` the
+same pictures show a trained avatar (posed and rendered as ``animate`` does) instead of the bare mesh.
 
 The fist is written in MANO's convention, not read off Anny: at the T-pose the left hand's fingers point
 along +x with the palm down (-y), so bending them towards the palm (tips towards -y) is a turn about -z;
@@ -98,6 +99,30 @@ def hand_views(vertices: np.ndarray, faces: np.ndarray, centre: np.ndarray, half
     return [front, under]
 
 
+def camera_at(centre: np.ndarray, half: float, size: int, view: str, distance: float = 2.0):
+    """A camera of ``size`` pixels whose picture spans the box of half side ``half`` around ``centre``,
+    looking from the front (+z) or from below (-y)."""
+    from rmavatar.data.synth.motion import look_at
+    from rmavatar.render.camera import Camera
+
+    offset, up = ((0.0, 0.0, distance), (0.0, 1.0, 0.0)) if view == "front" else ((0.0, -distance, 0.0), (0.0, 0.0, 1.0))
+    f = size / 2 * distance / half
+    K = np.array([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
+    return Camera(K, look_at(centre + np.array(offset), centre, up=up), size, size)
+
+
+def avatar_pictures(trained, seq, k: int, whole, hands: np.ndarray, size: int) -> list:
+    """Frame ``k`` of ``seq`` on the trained avatar: the whole body, then each hand from the front and
+    from below (as :func:`hand_views` frames the mesh)."""
+    gs = trained.pose(seq, k)
+    views = [camera_at(whole[0], whole[1], size, "front")]
+    for hand in hands:
+        centre = (hand.min(0) + hand.max(0)) / 2
+        views += [camera_at(centre, 0.12, size, "front"), camera_at(centre, 0.12, size, "below")]
+    return [Image.fromarray((trained.render(gs, cam).clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+            for cam in views]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", type=Path, help="the strip, a PNG")
@@ -106,6 +131,8 @@ def main() -> None:
     parser.add_argument("--body-motion", type=Path, default=None,
                         help="take the body poses from this motion file (e.g. aist_demo.npz) instead of standing")
     parser.add_argument("--size", type=int, default=240, help="pixels per picture (default 240)")
+    parser.add_argument("--run", type=Path, default=None,
+                        help="draw this trained avatar (a run folder on an Anny body) instead of the bare mesh")
     args = parser.parse_args()
 
     times = np.arange(round(KEYS[-1][0] * FPS) + 1) / FPS
@@ -114,7 +141,12 @@ def main() -> None:
     motion_path = args.motion_out or args.out.with_suffix(".npz")
     write_smplh(motion_path, body_poses, trans, hand_poses(times))
 
-    body = load_body_model("anny")
+    trained = None
+    if args.run is not None:
+        from rmavatar.avatar import load_trained
+
+        trained = load_trained(args.run)
+    body = load_body_model("anny") if trained is None else trained.body
     seq = motion_to_sequence(load_motion(motion_path), source=str(motion_path))
     with torch.no_grad():
         zero = torch.zeros(1, 3)
@@ -135,9 +167,12 @@ def main() -> None:
     strip = Image.new("RGB", (args.size * len(frames), label_h + args.size * len(rows)), (255, 255, 255))
     draw = ImageDraw.Draw(strip)
     for k, ((t, name), verts) in enumerate(zip(SHOWN, vertices)):
-        pictures = [render_mesh(verts, faces, args.size, views=("front",), bounds=whole)]
-        for hand in points[k]:  # left, right
-            pictures += hand_views(verts, faces, (hand.min(0) + hand.max(0)) / 2, 0.12, args.size)
+        if trained is not None:
+            pictures = avatar_pictures(trained, seq, k, whole, points[k], args.size)
+        else:
+            pictures = [render_mesh(verts, faces, args.size, views=("front",), bounds=whole)]
+            for hand in points[k]:  # left, right
+                pictures += hand_views(verts, faces, (hand.min(0) + hand.max(0)) / 2, 0.12, args.size)
         for r, picture in enumerate(pictures):
             strip.paste(picture, (k * args.size, label_h + r * args.size))
         draw.text((k * args.size + 6, 5), f"frame {frames[k]} ({t:.1f} s): {name}", fill=(0, 0, 0))
