@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from rmavatar.capture.fit import BodyFitConfig
+from rmavatar.capture.hands import HandFitConfig
 from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_folder
 
@@ -70,6 +71,8 @@ class CaptureConfig:
     test_fraction: float = 0.2  # tail of the clip held out as the test split
     device: str = "auto"  # where the fit runs: "auto", "cpu" or "cuda"
     fit: BodyFitConfig = field(default_factory=BodyFitConfig)  # the body fit's weights and schedule
+    # the fingers' fit (None: not captured, the body's relaxed hands); bodies without fingers skip it
+    hands: HandFitConfig | None = field(default_factory=HandFitConfig)
 
     def check(self) -> None:
         if self.fov is not None and self.focal is not None:
@@ -168,7 +171,8 @@ class _Look:
 @dataclass
 class _Clip:
     """The frames with a person, as detected: source index [T], keypoints [T,33,2], visibility [T,33],
-    world [T,33,3], small masks [T,h,w] bool (for the silhouette term), the person's height (px)."""
+    world [T,33,3], small masks [T,h,w] bool (for the silhouette term), the person's height (px), the
+    hands' landmarks (empty when the fingers are not captured)."""
 
     index: list[int] = field(default_factory=list)
     keypoints: list[np.ndarray] = field(default_factory=list)
@@ -176,6 +180,8 @@ class _Clip:
     world: list[np.ndarray] = field(default_factory=list)
     small_masks: list[np.ndarray] = field(default_factory=list)
     heights: list[float] = field(default_factory=list)
+    hands: list = field(default_factory=list)  # a rmavatar.capture.hands.HandDetection per frame
+    hand_seconds: float = 0.0  # of the landmarks stage, the hands' share (wall clock)
     no_person: list[int] = field(default_factory=list)
     other_person: list[int] = field(default_factory=list)
     decoded: int = 0
@@ -246,14 +252,15 @@ def _work_size(look: _Look, size: tuple[int, int]) -> tuple[int, int]:
     return _scaled(size, max(size) * scale)
 
 
-def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, stages: _Stages, bar
-            ) -> tuple[_Clip, tuple[int, int]]:
+def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, stages: _Stages, bar,
+            hands: bool = False) -> tuple[_Clip, tuple[int, int]]:
     """Look at a few frames first (:func:`_look`, the clip refused at once when they show no person or
-    two), then decode and detect every frame, and write each frame with a person, as the dataset's frame
-    files, into ``scratch`` (its images/ and masks/)."""
+    two), then decode and detect every frame (with ``hands``, the hands' landmarks too), and write each
+    frame with a person, as the dataset's frame files, into ``scratch`` (its images/ and masks/)."""
     import itertools
 
     from rmavatar.capture.detect import Detector
+    from rmavatar.capture.hands import HandDetector
     from rmavatar.capture.frames import output_size, read_frames, shrink
     from rmavatar.capture.matte import refine_mask
     from rmavatar.data.dataset import target_size
@@ -264,11 +271,13 @@ def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, s
     clip = _Clip()
     writer = _FrameWriter(scratch)
     try:
-        with Detector() as detect:
+        with Detector() as detect, (HandDetector() if hands else contextlib.nullcontext()) as find_hands:
             bar.set_description(f"capture: looking at {SAMPLE_FRAMES} frames of {source.path.name}")
             clip.look = _look(source, cfg, kept, detect, size, stages)
             _check_look(clip.look, source)
             work = clip.work_size = _work_size(clip.look, size)
+            # the hands' crops keep one size over the clip (a raised arm makes the mask taller, not the hand)
+            hand_scale = float(np.median(clip.look.heights))
             bar.set_description(f"capture: finding the person in {source.path.name} ({work[0]}x{work[1]})")
             for i, image in stages.frames(itertools.islice(read_frames(source, cfg.size, cfg.fps), cfg.frames)):
                 clip.decoded += 1
@@ -290,8 +299,14 @@ def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, s
                     clip.small_masks.append(resample(mask, *small) > 0.5)
                 with stages("write"):
                     writer.put(len(clip.index), image, to_uint8(mask, f"mask of frame {i}"))
+                keypoints = det.keypoints * np.array([size[0] / work[0], size[1] / work[1]], np.float32)
+                if find_hands is not None:
+                    with stages("landmarks"):  # on the frame written: MediaPipe's working size blurs the fingers
+                        start = time.perf_counter()
+                        clip.hands.append(find_hands(image, keypoints, det.visibility, hand_scale))
+                        clip.hand_seconds += time.perf_counter() - start
                 clip.index.append(i)
-                clip.keypoints.append(det.keypoints * np.array([size[0] / work[0], size[1] / work[1]], np.float32))
+                clip.keypoints.append(keypoints)
                 clip.visibility.append(det.visibility)
                 clip.world.append(det.world)
                 clip.heights.append(float(rows[-1] - rows[0] + 1) * size[1] / work[1])
@@ -416,8 +431,10 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     )
 
 
-def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: str, fx: float, losses: dict):
-    """The captured dataset's meta.yaml (a NativeMeta): body ``spec``, ``splits``, where each frame came from."""
+def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: str, fx: float, losses: dict,
+                  hands=None):
+    """The captured dataset's meta.yaml (a NativeMeta): body ``spec``, ``splits``, where each frame came
+    from, how many frames saw each hand (``hands``: the hand fit, None when the fingers were not captured)."""
     from rmavatar.data import NativeMeta
 
     preset = spec.partition(":")[2] if spec.startswith("anny:") else None
@@ -434,8 +451,46 @@ def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: s
                "frames_looked_at_first": clip.look.looked,
                "detection_size": list(clip.work_size),
                "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": fx},
-               "fit": asdict(cfg.fit), "losses": losses},
+               "fit": asdict(cfg.fit), "losses": losses, "hands": _hands_found(hands, clip),
+               "hand_fit": None if hands is None else asdict(cfg.hands)},
     )  # fmt: skip
+
+
+def _has_fingers(body) -> bool:
+    """Whether ``body`` poses fingers: Anny and SMPL-H / SMPL-X files do (they have a relaxed hand pose),
+    SMPL does not."""
+    return getattr(body, "relaxed_hand_pose", None) is not None
+
+
+def _fit_hands(body, params: dict, clip: _Clip, K: np.ndarray, fps: float, cfg: HandFitConfig):
+    """The hand poses of every frame (:func:`rmavatar.capture.hands.fit_hands`) on the body's fitted pose."""
+    from rmavatar.capture.hands import fit_hands
+
+    seen = _hand_landmarks(clip)
+    nb = min(10, int(getattr(body, "num_betas", 0)))
+    return fit_hands(body, params["global_orient"], params["body_pose"], params["transl"], seen["hand_keypoints"],
+                     seen["hand_world"], seen["hand_detected"], K, np.asarray(clip.index) / fps, cfg,
+                     betas=params["betas"][:nb] if nb else None)
+
+
+def _hand_landmarks(clip: _Clip) -> dict:
+    """capture.npz's hand arrays: MediaPipe's hand landmarks per frame, left hand then right
+    (``hand_keypoints`` [T,2,21,2] pixels, ``hand_world`` [T,2,21,3] metres, ``hand_detected`` [T,2])."""
+    if not clip.hands:
+        return {}
+    return {"hand_keypoints": np.stack([h.keypoints for h in clip.hands]),
+            "hand_world": np.stack([h.world for h in clip.hands]),
+            "hand_detected": np.stack([h.found for h in clip.hands])}
+
+
+def _hands_found(hands, clip: _Clip) -> dict | None:
+    """How many frames saw the left and the right hand, and the seconds the hands took (MediaPipe's
+    hand landmarks, of the landmarks stage; the hand fit, of the fit stage); None: not captured."""
+    if hands is None:
+        return None
+    found = hands.found.sum(0)
+    return {"frames": int(len(hands.found)), "left": int(found[0]), "right": int(found[1]),
+            "landmark_seconds": round(clip.hand_seconds, 3), "fit_seconds": round(hands.seconds, 3)}
 
 
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
@@ -444,7 +499,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     summary: frames kept and dropped, the frames looked at first, the size MediaPipe saw, seconds per
     stage (``seconds``: wall clock per STAGES item; ``cpu_seconds``: this process's CPU time), the
     whole call's ``total_seconds`` and ``seconds_per_frame`` (per frame decoded), the body, the camera,
-    the fit's final losses."""
+    the fit's final losses, ``hands``: how many frames saw each hand (None: the fingers not captured)."""
     from tqdm import tqdm
 
     from rmavatar.body import load_body_model
@@ -475,9 +530,10 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     for sub in ("images", "masks"):
         (scratch / sub).mkdir()
     bar = tqdm(total=len(kept) if kept is not None else None, unit="frame", disable=not progress)
+    fingers = cfg.hands is not None and _has_fingers(body)
     try:
         with bar:
-            clip, size = _detect(source, cfg, kept, scratch, stages, bar)
+            clip, size = _detect(source, cfg, kept, scratch, stages, bar, hands=fingers)
         _check_clip(clip, source)
         n = len(clip.index)
         splits = _splits(n, cfg.test_fraction, source.path, "with a person")  # before the fit's minutes
@@ -485,17 +541,22 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         with stages("fit"):
             obs = _observations(clip, K, size, device)
             result = fit_body(body, obs, cfg.fit, progress=progress)
-        spec = getattr(body, "spec", cfg.body)
-        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses)
         params = {"betas": result.betas, "global_orient": result.global_orient, "body_pose": result.body_pose,
                   "transl": result.transl}
+        hands = None
+        if fingers:
+            with stages("fit"):
+                hands = _fit_hands(body, params, clip, K, source.fps, cfg.hands)
+            params.update(body_pose=hands.body_pose, hand_pose=hands.hand_pose, hand_found=hands.found)
+        spec = getattr(body, "spec", cfg.body)
+        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses, hands)
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
         with stages("write"), \
                 output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
             _write_dataset(tmp, scratch, meta, camera, params)
             np.savez(tmp / "capture.npz", source_index=np.asarray(clip.index),
                      keypoints=np.stack(clip.keypoints), visibility=np.stack(clip.visibility),
-                     world=np.stack(clip.world))  # fmt: skip
+                     world=np.stack(clip.world), **_hand_landmarks(clip))  # fmt: skip
             contact_sheet(tmp / "contact_sheet.png", body, camera, params, splits, clip, tmp / "images")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -505,6 +566,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         "no_person": clip.no_person, "other_person": clip.other_person, "looked_at": clip.look.looked,
         "detection_size": list(clip.work_size), "body": spec,
         "camera": {"fx": float(K[0, 0]), "width": size[0], "height": size[1]},
-        "losses": result.losses, "seconds": dict(stages.wall), "cpu_seconds": dict(stages.cpu),
+        "losses": result.losses, "hands": _hands_found(hands, clip), "seconds": dict(stages.wall),
+        "cpu_seconds": dict(stages.cpu),
         "total_seconds": total, "seconds_per_frame": total / max(clip.decoded, 1),
     }

@@ -44,10 +44,25 @@ def body_overlay(image: np.ndarray, vertices_cam: np.ndarray, faces: np.ndarray,
     return image * (1 - a) + colour * a
 
 
+def _draw_hands(draw, body_points: np.ndarray, landmarks: list[np.ndarray]) -> None:
+    """The body's hand bones (points [2,21,2] in the tile, red) and MediaPipe's hand landmarks of the
+    hands seen (each [21,2], green dots), thinner than the body's."""
+    from rmavatar.capture.hands import POINT_PARENTS
+
+    for hand in body_points:
+        for a, b in enumerate(POINT_PARENTS[1:], start=1):
+            draw.line([tuple(hand[a]), tuple(hand[b])], fill=(230, 30, 30), width=1)
+    for points in landmarks:
+        for u, v in points:
+            draw.ellipse([u - 1, v - 1, u + 1, v + 1], fill=(20, 200, 60))
+
+
 def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, images: Path,
                   count: int = 12) -> list[dict]:
     """Write ``count`` frames spread over the clip: the fitted body over the frame, MediaPipe's
-    landmarks (green dots) and the body's landmark points joined as a skeleton (red). ``images``: the
+    landmarks (green dots) and the body's landmark points joined as a skeleton (red); with hand poses in
+    ``params``, the hands' landmarks and bones alike, and which hands the frame saw in its label (L, R;
+    "-" for a hand not seen, posed from the frames around it). ``images``: the
     dataset's images folder (frame i is ``{i:05d}.png``). Each tile is labelled with its split and the
     video's 0-based frame number (``clip.index``, capture.npz's ``source_index``); the same list is
     stored in the PNG as the text chunk ``frames`` (JSON) and returned: [{"frame": dataset frame,
@@ -75,9 +90,12 @@ def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, im
         betas = torch.as_tensor(params["betas"][None, : min(10, body.num_betas)], device=dev).expand(len(picks), -1)
     with torch.no_grad():
         go, bp = t("global_orient"), t("body_pose")
-        out = body(betas, go, bp, t("transl"))
+        hands = "hand_pose" in params
+        out = body(betas, go, bp, t("transl"), hand_pose=t("hand_pose") if hands else None)
         points = body_landmarks(out.joints, joint_rotations(go, bp))
-        uv_body = project(points, torch.as_tensor(K, dtype=torch.float32, device=dev)).cpu().numpy()
+        Kt = torch.as_tensor(K, dtype=torch.float32, device=dev)
+        uv_body = project(points, Kt).cpu().numpy()
+        uv_hands = project(out.hand_points, Kt).cpu().numpy() if hands and out.hand_points is not None else None
     vertices = out.vertices.cpu().numpy().astype(np.float64)
     faces = body.faces.cpu().numpy()
     rows = (len(picks) + PER_ROW - 1) // PER_ROW
@@ -98,7 +116,13 @@ def contact_sheet(path: Path, body, camera, params: dict, splits: dict, clip, im
             u, v = clip.keypoints[i][k] * scale + off
             r = 2 if clip.visibility[i][k] > 0.5 else 1
             draw.ellipse([u - r, v - r, u + r, v + r], fill=(20, 200, 60))
-        draw.text((x0 + 3, y0 + 1), f"{split_of.get(i, '?')}, video frame {clip.index[i]}", fill=(0, 0, 0))
+        label = f"{split_of.get(i, '?')}, video frame {clip.index[i]}"
+        if uv_hands is not None:
+            seen = params["hand_found"][i]
+            label += f", hands {'L' if seen[0] else '-'}{'R' if seen[1] else '-'}"
+            _draw_hands(draw, uv_hands[slot].reshape(2, 21, 2) + off,
+                        [clip.hands[i].keypoints[h] * scale + off for h in np.nonzero(seen)[0]])
+        draw.text((x0 + 3, y0 + 1), label, fill=(0, 0, 0))
     labels = [{"frame": int(i), "video_frame": int(clip.index[i]), "split": split_of.get(i, "?")} for i in picks]
     info = PngImagePlugin.PngInfo()
     info.add_text("frames", json.dumps(labels))
