@@ -78,13 +78,20 @@ def test_the_hand_chain_follows_smplh_fingers_from_the_wrist(tmp_path):
     assert float(error.max()) < 1e-5
 
 
-def test_the_fit_recovers_a_known_hand_pose(anny):
-    g = torch.Generator().manual_seed(0)
-    T = 8
-    truth = torch.as_tensor(finger_motion(T, hand_axes(anny), np.random.default_rng(0), frames_per_shape=2.0))
+def _scene(anny, T: int, seed: int, frames_per_shape: float):
+    """T frames of the synthetic finger motion on raised arms, and their landmarks with small noise:
+    (true hand poses, global_orient, body_pose, transl, 2D keypoints, world landmarks, found [T,2])."""
+    g = torch.Generator().manual_seed(seed)
+    truth = torch.as_tensor(finger_motion(T, hand_axes(anny), np.random.default_rng(seed),
+                                          frames_per_shape=frames_per_shape))
     go, bp, tr = _raised_arms(T, g)
     kp, world = _landmarks(anny, go, bp, tr, truth, g, px=0.2, metres=0.0005)
-    found = np.ones((T, 2), bool)
+    return truth, go, bp, tr, kp, world, np.ones((T, 2), bool)
+
+
+def test_the_fit_recovers_a_known_hand_pose(anny):
+    T = 8
+    truth, go, bp, tr, kp, world, found = _scene(anny, T, seed=0, frames_per_shape=2.0)
     # with a weak prior the landmarks alone recover it; the default prior (for MediaPipe's noisy
     # landmarks) pulls it some way towards the relaxed hand
     times = np.arange(T) / 30.0
@@ -145,12 +152,8 @@ def test_a_lost_hand_holds_its_pose_then_eases_to_relaxed():
 
 
 def test_the_fit_flags_the_frames_that_saw_each_hand_and_fills_the_others(anny):
-    g = torch.Generator().manual_seed(1)
     T = 30
-    truth = torch.as_tensor(finger_motion(T, hand_axes(anny), np.random.default_rng(1), frames_per_shape=30.0))
-    go, bp, tr = _raised_arms(T, g)
-    kp, world = _landmarks(anny, go, bp, tr, truth, g, px=0.2, metres=0.0005)
-    found = np.ones((T, 2), bool)
+    truth, go, bp, tr, kp, world, found = _scene(anny, T, seed=1, frames_per_shape=30.0)
     found[3:, 1] = False  # the right hand is lost after frame 2
     kp[3:, 1], world[3:, 1] = 0.0, 0.0
     fit = H.fit_hands(anny, go, bp, tr, kp, world, found, K, np.arange(T) / 30.0, H.HandFitConfig(iters=60))
