@@ -83,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
     if dropped:
         print(f"dropped {dropped} of {s['decoded']} frames: {len(s['no_person'])} without a person "
               f"{s['no_person'][:10]}, {len(s['other_person'])} with another person {s['other_person'][:10]}")
+    hands = s.get("hands")
+    if hands is not None:
+        print(f"hands: the left one found in {hands['left']} of {hands['frames']} frames, the right one in "
+              f"{hands['right']} (finger poses in smpl.npz's hand_pose; the others held, then relaxed)")
     t = s["seconds"]
     w, h = s["detection_size"]
     print(f"{s['seconds_per_frame']:.2f} s per frame, {s['total_seconds']:.1f} s in all (decoding {t['decode']:.1f} s, "
