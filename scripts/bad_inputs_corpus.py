@@ -731,12 +731,10 @@ for opt, val in [("--iters", "0"), ("--seeds", "a,b"), ("--variants", "bogus")]:
     case(f"bench:quality-{opt[2:]}={val or 'empty'}",
          lambda t, fx, o=opt, v=val: ["bench", "quality", "--work", T(t, "w"), "--size", "32", "--iters", "1", o, v],
          opt.replace("--seeds", "--seed") if opt == "--seeds" else opt, kind="numeric", timeout=60)
-case("bench:quality-work-is-a-user-file", lambda t, fx: ["bench", "quality", "--work", user_file(t / "notes.txt"),
-                                                         "--size", "32", "--iters", "1"], "notes.txt", kind="output",
-     timeout=60)
-case("bench:quality-work-is-a-user-folder", lambda t, fx: ["bench", "quality", "--work", user_dir(t / "mine"),
-                                                           "--size", "32", "--iters", "1"], "mine", kind="output",
-     timeout=60)
+for what, make, name in [("file", user_file, "notes.txt"), ("folder", user_dir, "mine")]:
+    case(f"bench:quality-work-is-a-user-{what}",
+         lambda t, fx, m=make, n=name: ["bench", "quality", "--work", m(t / n), "--size", "32", "--iters", "1"],
+         name, kind="output", timeout=60)
 for opt, val in [("--steps", "0"), ("--gaussians", "-5")]:
     case(f"bench:step-{opt[2:]}={val}",
          lambda t, fx, o=opt, v=val: ["bench", "step", "--data", fx.data, "--size", "32", "--steps", "1", "--warmup", "0",

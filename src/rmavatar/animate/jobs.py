@@ -102,7 +102,7 @@ def turntable_video(trained: TrainedAvatar, out: str | os.PathLike, num_frames: 
     opts = (opts or VideoOptions()).validate()
     seq = trained.rest_pose(pose)
     verts = trained.vertices(seq)
-    gs = trained.gaussians(verts[0], seq.body_pose[0], None if seq.hand_pose is None else seq.hand_pose[0])
+    gs = trained.gaussians(verts[0], seq.body_pose[0], seq.hand(0))
     width, height = _frame_size(opts)
     K = intrinsics(width, height, opts.fov_deg)
     center, distance = frame_the_body(verts, opts)

@@ -17,6 +17,7 @@ import torch
 from rmavatar.avatar.model import Avatar
 from rmavatar.avatar.run import RunFolder, check_body, training_betas
 from rmavatar.body import PoseSequence, apply_pose_corrections, load_body_model, posed_vertices, rest_pose
+from rmavatar.body.poses import hands_given
 from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.utils import UserError
 from rmavatar.utils.graphs import Replay
@@ -114,9 +115,8 @@ class TrainedAvatar:
         shape = self._shape()
         if self._poser is None:
             self._poser = Replay(self._pose_one, enabled=self.cuda_graphs)
-        # no hand pose: an empty [1,0] tensor, so the graph's arguments keep one layout
-        hands = one.hand_pose if one.hand_pose is not None else one.transl.new_zeros(1, 0)
-        out = self._poser(one.global_orient, one.body_pose, one.transl, hands, *(() if shape is None else (shape,)))
+        out = self._poser(one.global_orient, one.body_pose, one.transl, one.hand_rows(),
+                          *(() if shape is None else (shape,)))
         means, quats, scales, opacities, sh, *frames = (t.clone() for t in out) if keep else out
         return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh,
                            sh_degree=self.avatar.config.sh_degree, frames=frames[0] if frames else None)
@@ -129,7 +129,7 @@ class TrainedAvatar:
     def _pose_one(self, global_orient, body_pose, transl, hand_pose, betas=None) -> tuple[torch.Tensor, ...]:
         """:meth:`pose` as a function of tensors ([1,3], [1,69], [1,3], [1,90] or [1,0] for no hand pose,
         [1,nb]) for :class:`Replay`."""
-        hands = hand_pose if hand_pose.shape[1] else None
+        hands = hands_given(hand_pose)
         vertices = self.body(betas, global_orient, body_pose, transl, check_values=False,
                              hand_pose=hands).vertices.float()[0]
         gs = self.avatar.world_gaussians(vertices, self.avatar.pose_input(body_pose.reshape(69),

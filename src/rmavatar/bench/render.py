@@ -76,7 +76,7 @@ def measure(trained, seq, size: int, frames: int, warmup: int, graph: bool = Tru
             with _maybe(stages["mesh_embedding"], timed):
                 av.posed(vertices)
             with _maybe(stages["rectifier"], timed):  # the whole forward minus the embedding timed above
-                gs = trained.gaussians(vertices, one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
+                gs = trained.gaussians(vertices, one.body_pose[0], one.hand(0))
             with _maybe(stages["colors_rasterize"], timed):
                 draw(gs)
     split = {name: c.result()["wall_s"] for name, c in stages.items()}

@@ -185,7 +185,7 @@ def bench_rendering(trained, data: str, sizes: list[int], ref_size: int, repeats
                 with stages["body_forward"] if timed else nullcontext():
                     vertices = trained.vertices(one)[0]
                 with stages["gaussians"] if timed else nullcontext():  # mesh embedding + rectifier
-                    gs = trained.gaussians(vertices, one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
+                    gs = trained.gaussians(vertices, one.body_pose[0], one.hand(0))
                 with stages["rasterize"] if timed else nullcontext():
                     raster(gs.means, gs.quats, gs.scales, gs.opacities, gs.colors(view), view, K, size, size,
                            background=bg)

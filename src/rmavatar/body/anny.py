@@ -45,14 +45,17 @@ from scipy.spatial.transform import Rotation
 
 from rmavatar.body.base import (
     FINGERS,
+    HAND_ANCESTORS,
     HAND_JOINT_NAMES,
     HAND_PARENTS,
+    HAND_POINT_NAMES,
     SMPL_PARENTS,
     SMPL_REST_JOINTS,
     BodyModel,
     BodyOutput,
     check_hand_pose,
     check_pose_inputs,
+    fingertip_vertex,
     hand_points,
 )
 from rmavatar.body.lbs import axis_angle_to_matrix, global_rotations, lbs
@@ -89,11 +92,16 @@ _EXTRA_DRIVEN = {
 ANNY_FINGER = {"thumb": 1, "index": 2, "middle": 3, "ring": 4, "pinky": 5}
 
 
+def _finger_bone(finger: str, k: int | str, side: str) -> str:
+    """Anny's bone of joint ``k`` (1..3) of MANO's ``finger`` on ``side`` ("L" / "R"), e.g. finger2-1.L."""
+    return f"finger{ANNY_FINGER[finger]}-{k}.{side}"
+
+
 def hand_bone(joint: int) -> str:
     """The Anny bone of hand joint ``joint`` (0..29 in ``hand_pose``'s order), e.g. 0 -> 'finger2-1.L'."""
     side, k = divmod(joint, 15)
     name = HAND_JOINT_NAMES[k]
-    return f"finger{ANNY_FINGER[name[:-1]]}-{name[-1]}.{'LR'[side]}"
+    return _finger_bone(name[:-1], name[-1], "LR"[side])
 
 
 # Named phenotypes (Anny's parameters, 0..1; gender 0 = male, 1 = female; age 2/3 = young adult,
@@ -247,8 +255,7 @@ def _flat_fingers(source: list[int], Q: np.ndarray, heads: np.ndarray, verts: np
     (left thumb .. pinky, then right).
 
     Rest-space geometry (``heads``, ``verts`` in our frame, Anny's rest): a finger's bones point from
-    head to head, the last from its head to its tip, the vertex of the last bone (weight > 0.5) that
-    reaches furthest along the finger.
+    head to head, the last from its head to its tip (:func:`~rmavatar.body.base.fingertip_vertex`).
     """
     relaxed = np.tile(np.eye(3), (30, 1, 1))
     tips = []
@@ -257,10 +264,8 @@ def _flat_fingers(source: list[int], Q: np.ndarray, heads: np.ndarray, verts: np
         normal = np.cross(heads[bone[f"finger2-1.{s}"]] - wrist, heads[bone[f"finger5-1.{s}"]] - wrist)
         normal /= np.linalg.norm(normal)
         for finger in FINGERS:
-            chain = [bone[f"finger{ANNY_FINGER[finger]}-{k}.{s}"] for k in (1, 2, 3)]
-            last = heads[chain[2]] - heads[chain[1]]
-            own = np.nonzero(skin[:, chain[2]] > 0.5)[0]
-            tip = int(own[np.argmax((verts[own] - heads[chain[2]]) @ last)])
+            chain = [bone[_finger_bone(finger, k, s)] for k in (1, 2, 3)]
+            tip = fingertip_vertex(verts, skin[:, chain[2]], heads[chain[2]], heads[chain[2]] - heads[chain[1]])
             tips.append(tip)
             ends = [heads[chain[1]], heads[chain[2]], verts[tip]]
             flat = ends[0] - heads[chain[0]]
@@ -330,8 +335,8 @@ class AnnyBody(BodyModel):
         self.register_buffer("pelvis", torch.tensor(SMPL_REST_JOINTS[0], dtype=torch.float32), persistent=False)
         self.register_buffer("relaxed_hand_pose", torch.tensor(
             Rotation.from_matrix(relaxed).as_rotvec().reshape(-1), dtype=torch.float32), persistent=False)
-        hand_point_bones = [bone[f"wrist.{side}"] if k == 0 else bone[f"finger{ANNY_FINGER[FINGERS[(k - 1) // 4]]}-{(k - 1) % 4 + 1}.{side}"]
-                            for side in "LR" for k in range(21) if k == 0 or (k - 1) % 4 < 3]  # fmt: skip
+        hand_point_bones = [bone[f"wrist.{side}" if name == "wrist" else _finger_bone(name[:-1], name[-1], side)]
+                            for side in "LR" for name in HAND_POINT_NAMES if not name.endswith("_tip")]
         self.register_buffer("hand_point_bones", torch.tensor(hand_point_bones), persistent=False)
         self.register_buffer("fingertip_vertices", torch.tensor(tips), persistent=False)
         self.register_buffer("skin_weights", dense, persistent=False)
@@ -354,13 +359,9 @@ class AnnyBody(BodyModel):
         (``source_joint``; a finger joint counts for its SMPL ancestor, the hand or the wrist), so a
         joint's column is the share of the vertex that its rotation moves. ``hands``: ``[V,54]``, the
         finger joints apart."""
-        ancestor = list(range(len(HAND_PARENTS)))
-        if not hands:
-            for j in range(24, len(HAND_PARENTS)):  # parents come first: a finger's root is resolved already
-                p = HAND_PARENTS[j]
-                ancestor[j] = ancestor[p] if p >= 24 else p
+        column = torch.arange(len(HAND_PARENTS)) if hands else torch.tensor(HAND_ANCESTORS)
         drive = torch.zeros(len(self.bone_names), 54 if hands else 24, device=self.skin_weights.device)
-        drive[torch.arange(len(self.bone_names)), torch.tensor(ancestor)[self.source_joint.cpu()]] = 1.0
+        drive[torch.arange(len(self.bone_names)), column[self.source_joint.cpu()]] = 1.0
         return self.skin_weights @ drive
 
     def bone_rotations(self, global_orient: torch.Tensor, body_pose: torch.Tensor,

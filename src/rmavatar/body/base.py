@@ -51,6 +51,14 @@ HAND_PARENTS = SMPL_PARENTS + tuple(
     for k, name in enumerate(HAND_JOINT_NAMES)
 )
 
+# Each of the 54 joints' SMPL joint (0..23): its own for SMPL's, for a finger joint the one its finger
+# hangs from (the wrist for the thumb, SMPL's hand joint for the other four): where a body without the
+# finger joints apart counts their skinning weights.
+HAND_ANCESTORS = tuple(
+    j if j < 24 else (20 if HAND_JOINT_NAMES[(j - 24) % 15].startswith("thumb") else 22) + (j - 24) // 15
+    for j in range(len(HAND_PARENTS))
+)
+
 # MediaPipe's 21 hand landmarks per hand: the wrist, then per finger (thumb, index, middle, ring, pinky)
 # its three joints from the palm out and its tip. ``BodyOutput.hand_points`` follows this order.
 HAND_POINT_NAMES = ("wrist",) + tuple(f"{f}{k}" for f in FINGERS for k in ("1", "2", "3", "_tip"))
@@ -161,13 +169,24 @@ def hand_points(points: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
     return torch.cat([points[:, :, :1], fingers], 2).reshape(-1, 42, 3)
 
 
+def fingertip_vertex(rest_vertices: np.ndarray, last_weights: np.ndarray, head: np.ndarray,
+                     direction: np.ndarray) -> int | None:
+    """The fingertip vertex of a rest mesh: of the vertices that mostly follow the finger's last bone
+    (``last_weights [V]`` > 0.5), the one reaching furthest along ``direction`` from its ``head``; None
+    when no vertex follows it."""
+    own = np.nonzero(last_weights > 0.5)[0]
+    if len(own) == 0:
+        return None
+    return int(own[np.argmax((rest_vertices[own] - head) @ direction)])
+
+
 def check_hand_pose(hand_pose, batch: int, dtype: torch.dtype, device: torch.device,
                     check_values: bool = True) -> torch.Tensor | None:
     """``hand_pose`` as a ``[batch, 90]`` tensor (None stays None); UserError naming what is wrong."""
     if hand_pose is None:
         return None
     hand_pose = _as_tensor(hand_pose, "hand_pose", dtype, device)
-    if hand_pose.ndim != 2 or hand_pose.shape != (batch, HAND_POSE_DIM):
+    if hand_pose.shape != (batch, HAND_POSE_DIM):
         raise UserError(
             f"hand_pose must have shape [{batch}, {HAND_POSE_DIM}] (left then right hand, 15 joints x 3 "
             f"axis-angle values each, MANO order), got {list(hand_pose.shape)}"

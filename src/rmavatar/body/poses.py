@@ -45,6 +45,15 @@ class PoseSequence:
         hands = None if self.hand_pose is None else self.hand_pose[index]
         return PoseSequence(self.global_orient[index], self.body_pose[index], self.transl[index], hands)
 
+    def hand(self, i: int) -> torch.Tensor | None:
+        """Frame ``i``'s hand pose [90], or None without finger poses."""
+        return None if self.hand_pose is None else self.hand_pose[i]
+
+    def hand_rows(self) -> torch.Tensor:
+        """``hand_pose``, or an empty [N,0] tensor without finger poses: always a tensor, so a function
+        replayed as a CUDA graph keeps one argument layout (:func:`hands_given` reads it back)."""
+        return self.hand_pose if self.hand_pose is not None else self.transl.new_zeros(len(self), 0)
+
     def to(self, device) -> "PoseSequence":
         hands = None if self.hand_pose is None else self.hand_pose.to(device)
         return PoseSequence(self.global_orient.to(device), self.body_pose.to(device), self.transl.to(device), hands)
@@ -52,6 +61,11 @@ class PoseSequence:
     def joint_rotvecs(self) -> torch.Tensor:
         """[N,24,3]: the global orientation, then the 23 body joints, as axis-angle vectors."""
         return torch.cat((self.global_orient, self.body_pose), 1).reshape(len(self), 24, 3)
+
+
+def hands_given(hand_rows: torch.Tensor) -> torch.Tensor | None:
+    """:meth:`PoseSequence.hand_rows`' tensor back as a hand pose: None where it is empty."""
+    return hand_rows if hand_rows.shape[-1] else None
 
 
 def rest_pose(kind: str = "tpose") -> PoseSequence:

@@ -23,12 +23,15 @@ import torch
 
 from rmavatar.body.base import (
     FINGERS,
+    HAND_ANCESTORS,
     HAND_JOINT_NAMES,
+    HAND_PARENTS,
     SMPL_PARENTS,
     BodyModel,
     BodyOutput,
     check_hand_pose,
     check_pose_inputs,
+    fingertip_vertex,
     hand_points,
 )
 from rmavatar.body.lbs import axis_angle_to_matrix, lbs
@@ -271,28 +274,14 @@ def _shape_components(kind: ModelKind, count: int) -> int:
 def _weight_columns(kind: ModelKind, hands: bool) -> list[int]:
     """The column of :meth:`SmplBody.joint_weights` each of the file's joints counts for: its own for
     the 22 body joints (and SMPL's hands), the head's for SMPL-X's jaw and eyes; a finger joint's own
-    column of HAND_PARENTS with ``hands``, else its SMPL ancestor's, as Anny's: the wrist for the thumb,
-    SMPL's hand joint for the other four fingers."""
+    column of HAND_PARENTS with ``hands``, else its SMPL ancestor's (``HAND_ANCESTORS``, as Anny's)."""
     columns = list(range(len(kind.parents)))
     if kind.first_finger is None:
         return columns
     columns[22 : kind.first_finger] = [15] * kind.face_joints
-    for side in (0, 1):
-        for k, name in enumerate(HAND_JOINT_NAMES):
-            ancestor = (20 if name.startswith("thumb") else 22) + side
-            columns[kind.first_finger + 15 * side + k] = 24 + 15 * side + k if hands else ancestor
+    for j in range(24, len(HAND_PARENTS)):
+        columns[kind.first_finger + j - 24] = j if hands else HAND_ANCESTORS[j]
     return columns
-
-
-def _fingertip(template: np.ndarray, joints: np.ndarray, weights: np.ndarray, last: int,
-               before: int) -> int | None:
-    """The fingertip vertex of the rest mesh: of the vertices that mostly follow the finger's last joint
-    ``last`` (weight > 0.5), the one reaching furthest along the bone from joint ``before`` (None: no such
-    vertex)."""
-    own = np.nonzero(weights[:, last] > 0.5)[0]
-    if len(own) == 0:
-        return None
-    return int(own[np.argmax((template[own] - joints[last]) @ (joints[last] - joints[before]))])
 
 
 class SmplBody(BodyModel):
@@ -347,8 +336,9 @@ class SmplBody(BodyModel):
         points = [[20 + side] + [joint(side, f"{f}{k}") for f in FINGERS for k in (1, 2, 3)] for side in (0, 1)]
         self.register_buffer("hand_point_joints", torch.tensor(points).reshape(-1), persistent=False)
         rest_joints = data["J_regressor"] @ data["v_template"]
-        tips = [_fingertip(data["v_template"], rest_joints, data["weights"], joint(side, f"{f}3"),
-                           joint(side, f"{f}2")) for side in (0, 1) for f in FINGERS]  # fmt: skip
+        tips = [fingertip_vertex(data["v_template"], data["weights"][:, last], rest_joints[last],
+                                 rest_joints[last] - rest_joints[joint(side, f"{f}2")])
+                for side in (0, 1) for f in FINGERS for last in [joint(side, f"{f}3")]]  # fmt: skip
         if None in tips:
             raise UserError(f"{self.file} is not an {self.kind.name} model or is damaged: no vertex follows "
                             "the last joint of every finger (skinning weight > 0.5)")  # fmt: skip

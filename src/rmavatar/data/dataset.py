@@ -46,6 +46,13 @@ class FrameRecord:
     hand_found: np.ndarray | None = None
 
 
+def hand_columns(recs: list[FrameRecord]) -> dict[str, np.ndarray]:
+    """The records' finger poses stacked: hand_pose [n,90] and hand_found [n,2], each where every record
+    has it."""
+    return {key: np.stack([getattr(r, key) for r in recs]) for key in ("hand_pose", "hand_found")
+            if all(getattr(r, key) is not None for r in recs)}
+
+
 def target_size(width: int, height: int, size) -> tuple[int, int]:
     """``size``: None (keep), an int (the longer side, aspect kept) or (width, height)."""
     if size is None:
@@ -114,17 +121,14 @@ class Dataset:
         body_pose [n,69], transl [n,3], index [n] (source frame numbers), and hand_pose [n,90] and
         hand_found [n,2] where the dataset has finger poses."""
         recs = self._record_list(split)
-        out = {
+        return {
             "betas": np.stack([r.betas for r in recs]),
             "global_orient": np.stack([r.global_orient for r in recs]),
             "body_pose": np.stack([r.body_pose for r in recs]),
             "transl": np.stack([r.transl for r in recs]),
             "index": np.array([r.index for r in recs], dtype=np.int64),
+            **hand_columns(recs),
         }
-        for key in ("hand_pose", "hand_found"):
-            if all(getattr(r, key) is not None for r in recs):
-                out[key] = np.stack([getattr(r, key) for r in recs])
-        return out
 
     def frame(self, split: str, i: int) -> Frame:
         rec = self._record(split, i)

@@ -27,7 +27,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 import yaml
 
-from rmavatar.data.dataset import Dataset, FrameRecord, warn
+from rmavatar.data.dataset import Dataset, FrameRecord, hand_columns, warn
 from rmavatar.data.io import load_npz, to_uint8, write_png
 from rmavatar.render.camera import Camera
 from rmavatar.utils import UserError
@@ -500,10 +500,7 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
                 splits[split].append(seen[key])
     cameras = [ds.camera(s, i) for s, i in entries]
     recs = [ds._record(s, i) for s, i in entries]
-    params = {key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}
-    for key in HAND_KEYS:
-        if all(getattr(r, key) is not None for r in recs):
-            params[key] = np.stack([getattr(r, key) for r in recs])
+    params = {**{key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}, **hand_columns(recs)}
     frames_a, frames_b = itertools.tee(ds.frame(s, i) for s, i in entries)
     meta = NativeMeta(name=name or ds.name, splits=splits, fps=ds.fps if ds.fps is not None else 30.0,
                       gender=ds.gender, body=ds.body, poses_estimated=ds.poses_estimated,

@@ -154,7 +154,7 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
             # The rectifier's output and the view-dependent colours send no gradient to the pose; held
             # fixed between refreshes, a step costs the mesh embedding and the rasterizer only.
             refresh = step % cfg.refresh == 0
-            pose = avatar.pose_input(fitted.body_pose[k], None if fitted.hand_pose is None else fitted.hand_pose[k])
+            pose = avatar.pose_input(fitted.body_pose[k], fitted.hand(k))
             if refresh and avatar.rectifier is not None:
                 with torch.no_grad():
                     rectified[k] = avatar.rectify(vertices[k], pose)

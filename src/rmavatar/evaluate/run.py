@@ -216,7 +216,7 @@ def _render_and_target(ev: _Evaluation, poses, i: int):
     frame = ev.dataset.frame(ev.split, i)
     one = poses.select(slice(i, i + 1))
     verts = posed_vertices(ev.run.body, one, ev.params["betas"][i : i + 1])[0]  # the frame's own shape
-    pose = ev.run.avatar.pose_input(one.body_pose[0], None if one.hand_pose is None else one.hand_pose[0])
+    pose = ev.run.avatar.pose_input(one.body_pose[0], one.hand(0))
     drawn = render_frame(ev.run.avatar, verts, pose.to(ev.device), frame.camera, ev.background)
     mask = torch.tensor(frame.mask, dtype=torch.float32, device=ev.device)
     target = composite(torch.tensor(frame.image, dtype=torch.float32, device=ev.device), mask, ev.background)

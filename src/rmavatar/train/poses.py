@@ -22,6 +22,7 @@ import torch
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
 from rmavatar.body.corrections import correction_adam_step, pose_corrections
+from rmavatar.body.poses import hands_given
 from rmavatar.utils import UserError, atomic_path
 
 
@@ -60,8 +61,7 @@ class PoseRefiner:
         ``delta``, so gradients reach it), its base global_orient [1,3], body_pose [1,69], transl [1,3],
         hand_pose [1,90] ([1,0] without finger poses), and its betas [1,nb] when the body has a shape."""
         base = self.base.select(slice(i, i + 1))
-        hands = base.hand_pose if base.hand_pose is not None else base.transl.new_zeros(1, 0)
-        rows = (self.delta[i : i + 1], base.global_orient, base.body_pose, base.transl, hands)
+        rows = (self.delta[i : i + 1], base.global_orient, base.body_pose, base.transl, base.hand_rows())
         return rows if self.betas is None else (*rows, self.betas[i : i + 1])
 
     def zero_grad(self) -> None:
@@ -161,7 +161,7 @@ def pose_corrected(body, pose_input: Callable, delta: torch.Tensor, global_orien
     pose, without gradient: the corrections are to align the body with the image, not to suit the MLP.
     Tensor operations only: a CUDA step replays it in a graph with the avatar's posing."""
     one = apply_pose_corrections(PoseSequence(global_orient, body_pose, transl), delta)
-    hands = hand_pose if hand_pose.shape[1] else None
+    hands = hands_given(hand_pose)
     # NaN/inf are caught by the trainer's one device-side check (the Gaussians and every gradient)
     vertices = body(betas, one.global_orient, one.body_pose, one.transl, check_values=False,
                     hand_pose=hands).vertices[0].float()
