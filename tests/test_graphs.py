@@ -185,21 +185,35 @@ def test_cuda_graphs_are_captured_again_as_sh_bands_switch_on(tiny_subject, make
 
 
 @CUDA
-def test_cuda_graphs_are_captured_again_after_density_control(tiny_subject, make_train_config, tmp_path):
-    # Densification and pruning replace the parameters: each event is a new signature, captured again
-    # (the run's commonest re-capture), and the steps go on replaying graphs.
-    cfg = make_train_config(tiny_subject, 30, size=64, sh_degree=1, device="cuda", density=True)
-    cfg.density.start, cfg.density.every, cfg.density.reset_start = 2000, 2000, 50_000  # every 1.2 iterations of 30
-    t = Trainer(cfg, tmp_path / "run", progress=False)
-    t.setup()
-    sizes = set()
-    for _ in range(10):
-        assert bool(t.step()["ok"])
-        t.iteration += 1
-        sizes.add(t.avatar.num_gaussians)
-    assert len(sizes) > 1, "no density event happened: the test does not test re-capturing"
-    assert not t.graphs.failures and t.graphs.enabled, t.graphs.failures
-    assert t.graphs.captures >= 2 + len(sizes) - 1
+@pytest.mark.parametrize("capacity", [False, True])
+def test_cuda_graphs_after_density_control(tiny_subject, make_train_config, tmp_path, capacity):
+    # Without capacity buffers densification and pruning replace the parameters: each event is a new
+    # signature, captured again. With them (the default with graphs) the rows are rewritten in place and
+    # the graphs stay valid: no capture after the first ones, and the steps' losses follow eager steps.
+    losses = {}
+    for graphs in (True, False):
+        cfg = make_train_config(tiny_subject, 30, size=64, sh_degree=0, device="cuda", density=True)
+        cfg.density.start, cfg.density.every, cfg.density.reset_start = 2000, 2000, 50_000  # every 1.2 of 30
+        cfg.density.capacity, cfg.cuda_graphs = capacity, graphs
+        cfg.density.max_gaussians = 100_000  # buffers of that many rows, never outgrown here
+        t = Trainer(cfg, tmp_path / f"run{graphs}", progress=False)
+        t.setup()
+        sizes, losses[graphs] = set(), []
+        for _ in range(10):
+            out = t.step()
+            assert bool(out["ok"])
+            t.iteration += 1
+            sizes.add(t.avatar.num_gaussians)
+            losses[graphs].append(out["loss"])
+        assert len(sizes) > 1, "no density event happened: the test does not test re-capturing"
+        if graphs:
+            assert not t.graphs.failures and t.graphs.enabled, t.graphs.failures
+            if capacity:  # posing and losses, once (SH degree 0, the encoding window opens at 15 of 30)
+                assert t.graphs.captures == 2 and t.avatar.capacity > max(sizes)
+            else:
+                assert t.graphs.captures >= 2 + len(sizes) - 1
+    if capacity:
+        torch.testing.assert_close(torch.stack(losses[True]), torch.stack(losses[False]), rtol=1e-3, atol=1e-6)
 
 
 @pytest.mark.parametrize("device", DEVICES)

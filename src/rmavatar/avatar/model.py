@@ -146,6 +146,9 @@ class AvatarExtras:
     local_log_scales: torch.Tensor  # [N,3] face-local log-scales: the scaling regulariser's input
     # the rectifier's offsets (d_mu, d_s, d_r) in world units (the offset regulariser's input); None without one
     offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
+    # [N] each row's weight in the regularisers' means: 1/live rows for a live row, 0 for an unused one, in
+    # capacity buffers (Avatar.row_weights); None: every row counts, 1/N
+    row_weights: torch.Tensor | None = None
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -167,6 +170,13 @@ def area_counts(areas: torch.Tensor, total: int) -> torch.Tensor:
     if left > 0:
         base[torch.argsort(share - base.double(), descending=True)[:left]] += 1
     return base + 1
+
+
+def _refill(old: torch.Tensor | None, new: torch.Tensor | None) -> torch.Tensor | None:
+    """``new``'s values in ``old``'s memory where the shapes agree (else ``new``)."""
+    if old is None or new is None or old.shape != new.shape:
+        return new
+    return old.copy_(new)
 
 
 def _mesh_tensors(faces, binding_faces, v_template):
@@ -241,6 +251,13 @@ class Avatar(nn.Module):
     sets of pose values faces see) and face_pose_group [F] (every face's row of pose_masks).
     ``rectifier``: the design (a ``rectifier.RectifierDesign``, which holds the MLP) or None.
 
+    Capacity buffers (training on a GPU: shapes that stay fixed between density events, so a captured
+    step stays valid): the per-Gaussian tensors have ``capacity`` rows of which the first
+    ``num_gaussians`` are live; the rest are unused (opacity 0, no gradient). ``live_rows`` is then that
+    count and the buffers ``live`` [C] (1 / 0) and ``row_weights`` [C] (``live / live_rows``) mask them;
+    :func:`rmavatar.train.density.use_capacity` turns them on, density control rewrites rows in place,
+    and :meth:`checkpoint_state` keeps only the live rows. ``live_rows`` None: every row is live.
+
     The rectifier's pose input (``body_pose`` in the methods below) has ``pose_dim`` values: body_pose
     [69], followed by hand_pose [90] when ``config.hand_pose`` (then pose_masks are [U,159] and
     ``relaxed_hand_pose`` [90] is the body's relaxed hands); :meth:`pose_input` builds it.
@@ -264,6 +281,9 @@ class Avatar(nn.Module):
         self._init_mesh(faces, binding_faces, v_template)
         self._init_gaussians(v_template, config, init_colors, seed)
         self._init_rectifier(config, joint_weights, relaxed_hand_pose)
+        self.live_rows: int | None = None  # capacity buffers (class docstring); None: every row is live
+        self.register_buffer("live", None, persistent=False)
+        self.register_buffer("row_weights", None, persistent=False)
 
     def _init_mesh(self, faces, binding_faces, v_template):
         """The mesh buffers: the faces, the binding faces and what the rest mesh gives."""
@@ -319,8 +339,13 @@ class Avatar(nn.Module):
 
     # ------------------------------------------------------------------ construction
     def checkpoint_state(self) -> dict:
-        """Everything needed to rebuild this avatar: {"config": dict, "state_dict": tensors}."""
-        return {"config": dataclasses.asdict(self.config), "state_dict": self.state_dict()}
+        """Everything needed to rebuild this avatar: {"config": dict, "state_dict": tensors}; of capacity
+        buffers only the live rows."""
+        state = self.state_dict()
+        if self.live_rows is not None:
+            for name in (*GAUSSIAN_PARAMS, "face_ids"):
+                state[name] = state[name][: self.live_rows].clone()
+        return {"config": dataclasses.asdict(self.config), "state_dict": state}
 
     @classmethod
     def from_state(cls, body, state: dict, where: str = "checkpoint") -> "Avatar":
@@ -350,6 +375,12 @@ class Avatar(nn.Module):
     # ------------------------------------------------------------------ properties
     @property
     def num_gaussians(self) -> int:
+        """The live Gaussians (all rows, unless in capacity buffers)."""
+        return self.means.shape[0] if self.live_rows is None else self.live_rows
+
+    @property
+    def capacity(self) -> int:
+        """Rows of the per-Gaussian tensors (``num_gaussians`` of them live)."""
         return self.means.shape[0]
 
     def set_frequency_alpha(self, alpha: float) -> None:
@@ -392,12 +423,16 @@ class Avatar(nn.Module):
         """Per-Gaussian constants of the local rectifier: the rest frames as w R [N,3,3], the rest
         centroids [N,3] and the pose-mask groups [N]; gathered once per ``slot`` (density control makes a
         new one) and buffer set (``.to()`` replaces them), not on every step."""
-        key = (slot, self.rest_frames, self.rest_scales, self.rest_centroids, getattr(self, "face_pose_group", None))
+        key = (slot, slot._version, self.rest_frames, self.rest_scales, self.rest_centroids,
+               getattr(self, "face_pose_group", None))
         cached = getattr(self, "_local_cache", None)
-        if cached is None or any(a is not b for a, b in zip(cached[0], key)):
+        if cached is None or any(a is not b if torch.is_tensor(a) else a != b for a, b in zip(cached[0], key)):
             wR = self.rest_scales[slot, None, None] * self.rest_frames[slot]
             group = None if key[-1] is None else self.face_pose_group[self.face_ids]
-            cached = self._local_cache = (key, (wR, self.rest_centroids[slot], group))
+            values = (wR, self.rest_centroids[slot], group)
+            if cached is not None and cached[0][0] is slot:  # rows rewritten in place: so are these
+                values = tuple(_refill(old, new) for old, new in zip(cached[1], values))
+            cached = self._local_cache = (key, values)
         return cached[1]
 
     def face_table(self, vertices: torch.Tensor) -> torch.Tensor:
@@ -443,8 +478,15 @@ class Avatar(nn.Module):
         if cached is not None and all(a is b if torch.is_tensor(a) else a == b for a, b in zip(cached[0], key)):
             return cached[1]
         slot = self._compute_face_slot()
+        if cached is not None and cached[0][0] is self.face_ids:  # rows rewritten in place: so is the slot
+            slot = _refill(cached[1], slot)
         self._slot_cache = (key, slot)
         return slot
+
+    def refresh_row_caches(self) -> None:
+        """Recompute what is gathered per Gaussian row (the face slots, the local rectifier's inputs) after
+        the rows were rewritten in place, into the same tensors: a captured step reads them there."""
+        self._local_inputs(self._face_slot())
 
     def _compute_face_slot(self) -> torch.Tensor:
         dev = self.face_ids.device
@@ -514,9 +556,12 @@ class Avatar(nn.Module):
         # all stored bands on: the whole tensor, not a slice (whose backward would copy into zeros)
         rest = self.sh_rest if k - 1 == self.sh_rest.shape[1] else self.sh_rest[:, : k - 1]
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, rest), dim=1)
-        gs = GaussianSet(means=mu, quats=r, scales=s, opacities=torch.sigmoid(self.opacity_logits), sh=sh,
-                         sh_degree=deg, frames=frames)
-        return gs, AvatarExtras(local_means=self.means, local_log_scales=self.log_scales, offsets=offsets)
+        opacities = torch.sigmoid(self.opacity_logits)
+        if self.live is not None:  # unused rows of capacity buffers: culled, and no gradient reaches them
+            opacities = opacities * self.live
+        gs = GaussianSet(means=mu, quats=r, scales=s, opacities=opacities, sh=sh, sh_degree=deg, frames=frames)
+        return gs, AvatarExtras(local_means=self.means, local_log_scales=self.log_scales, offsets=offsets,
+                                row_weights=self.row_weights)
 
     @torch.no_grad()
     def world_gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:

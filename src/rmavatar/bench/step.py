@@ -113,8 +113,8 @@ def _stages(trainer, repeats: int, sync) -> dict:
 
 
 def _config(data: str, size: int, device: str, threads: int, rectifier, gaussians: int, refine_poses: bool,
-            cuda_graphs: bool = True):
-    """The TrainConfig the benchmark's steps run with."""
+            cuda_graphs: bool = True, capacity: bool | None = None):
+    """The TrainConfig the benchmark's steps run with (``capacity``: density.capacity)."""
     from rmavatar.train.config import TrainConfig
     from rmavatar.data.registry import normalize_spec
 
@@ -124,6 +124,7 @@ def _config(data: str, size: int, device: str, threads: int, rectifier, gaussian
     cfg.data.size = size
     cfg.device = device
     cfg.cuda_graphs = cuda_graphs
+    cfg.density.capacity = capacity
     cfg.model.rectifier = "paper" if rectifier else False  # the design every measurement here was taken with
     if refine_poses:  # every timed step past the warm-up: the body posed with gradients (a first pass's)
         cfg.poses.refine, cfg.poses.warmup, cfg.poses.first_pass = True, 0.0, 0.0
@@ -174,7 +175,7 @@ def count_graphed_ops(trainer) -> dict:
     image.requires_grad_(True)
     offsets = None if extras.offsets is None else tuple(o.detach().requires_grad_(True) for o in extras.offsets)
     with OpCounter() as losses:
-        loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets), cfg.loss,
+        loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets, extras.row_weights), cfg.loss,
                              lpips_units=units, lpips_window=window)
         loss.backward()
     av.zero_grad(set_to_none=True)
@@ -194,7 +195,7 @@ def device_info(device) -> dict:
 
 def measure(data: str, size: int, steps: int, warmup: int, threads: int, device: str,
             gaussians: int | None, rectifier: bool, prepare=None, count_steps: int = 20,
-            refine_poses: bool = False, cuda_graphs: bool = True) -> dict:
+            refine_poses: bool = False, cuda_graphs: bool = True, capacity: bool | None = None) -> dict:
     """Time ``steps`` training steps (after ``warmup``) and each stage alone; see the module docstring.
 
     ``prepare(trainer)``, when given, runs after the trainer's setup and before any step (``bench speed``
@@ -205,7 +206,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
 
     from rmavatar.train.trainer import Trainer
 
-    cfg = _config(data, size, device, threads, rectifier, gaussians, refine_poses, cuda_graphs)
+    cfg = _config(data, size, device, threads, rectifier, gaussians, refine_poses, cuda_graphs, capacity)
     with tempfile.TemporaryDirectory() as run:
         trainer = Trainer(cfg, Path(run), progress=False)
         t0 = time.perf_counter()
@@ -239,6 +240,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         if skipped:
             raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
         n = trainer.avatar.num_gaussians
+        rows = None if trainer.avatar.live_rows is None else trainer.avatar.capacity
         graphs = {"used": trainer.graphs.enabled, "captures": trainer.graphs.captures,
                   "capture_s": trainer.graphs.capture_s, "off_reason": trainer.graphs.off_reason,
                   "failures": [list(f) for f in trainer.graphs.failures]}
@@ -255,6 +257,7 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "size": size,
         "gaussians": n,
+        "capacity": rows,  # rows of the capacity buffers the Gaussians live in (None: not in buffers)
         **device_info(trainer.device),
         "threads": threads,
         "rectifier": rectifier,
@@ -296,11 +299,13 @@ def run(args: argparse.Namespace) -> int:
             data = synthetic_subject(Path(tmp) / "synth", args.size)
         res = measure(data, args.size, args.steps, args.warmup, args.threads, args.device, args.gaussians,
                       not args.no_rectifier, count_steps=args.count_steps, refine_poses=args.refine_poses,
-                      cuda_graphs=not args.no_cuda_graphs)
+                      cuda_graphs=not args.no_cuda_graphs,
+                      capacity={"auto": None, "on": True, "off": False}[args.capacity])
     res["machine"] = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                       "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg())}
     gpu = f" ({res['gpu']})" if "gpu" in res else ""
-    print(f"training step at {res['size']}x{res['size']}, {res['gaussians']} Gaussians, {res['device']}{gpu}, "
+    rows = f" (in buffers of {res['capacity']} rows)" if res["capacity"] else ""
+    print(f"training step at {res['size']}x{res['size']}, {res['gaussians']} Gaussians{rows}, {res['device']}{gpu}, "
           f"{res['threads']} threads:")
     print(f"  median {res['step_median_s']:.3f} s wall, {res['step_median_cpu_s']:.3f} s CPU (min {res['step_min_s']:.3f}, "
           f"max {res['step_max_s']:.3f}; target <= {res['target_s']} s)  {res['iterations_per_s']:.2f} it/s")

@@ -121,6 +121,9 @@ def _step_options(parser: argparse.ArgumentParser) -> None:
                         help="time steps with pose refinement (the body posed with gradients every step)")
     parser.add_argument("--no-cuda-graphs", action="store_true",
                         help="on CUDA, run the step eagerly (the reference for the replayed CUDA graphs)")
+    parser.add_argument("--capacity", choices=("auto", "on", "off"), default="auto",
+                        help="keep the Gaussians in fixed-size buffers (density.capacity; auto, the default: "
+                             "where the step replays as CUDA graphs)")
     parser.epilog = "Example: rmavatar bench step --json bench_step.json"
 
 

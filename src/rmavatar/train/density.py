@@ -14,6 +14,13 @@
 - Opacity reset: opacity = min(opacity, 0.01), Adam moments of the opacity cleared (as 3DGS).
 Every change is mirrored in the given ``torch.optim.Adam``: kept rows keep their moments, new rows
 start at zero, removed rows are dropped, and the optimiser's parameters are the avatar's new ones.
+
+Capacity buffers (:func:`use_capacity`; ``Avatar`` docstring): the live Gaussians are the first rows
+of tensors of a fixed size, in the order they would have without buffers, so a run gives the same
+Gaussians either way (to float rounding: sums over more rows). Densify and prune then rewrite those
+rows and the mask in place, and the parameters, their Adam moments and every tensor a captured CUDA
+graph reads stay where they are; only outgrowing the buffers allocates anew (half as many again, or
+the density cap).
 """
 
 from __future__ import annotations
@@ -63,6 +70,10 @@ class DensityConfig:
 
     max_gaussians: int = 0  # the Gaussian cap: densification stops adding past it; 0 = unlimited
     enabled: bool = True  # densify, prune and reset opacities at all
+    # Keep the Gaussians in fixed-size buffers between density events (the cap, or grown by half when
+    # full), so a step captured as CUDA graphs need not be captured again; None = where the step runs as
+    # CUDA graphs. Same results either way; checkpoints hold the live Gaussians only.
+    capacity: bool | None = None
     # --- advanced ---
     reference_iters: int = 50_000  # the schedule below is scaled by iters / reference_iters
     start: int = 10_000  # first densification (at reference_iters)
@@ -110,33 +121,118 @@ def rebuild_gaussians(
     new_rows: dict[str, torch.Tensor] | None = None,
     new_face_ids: torch.Tensor | None = None,
 ) -> None:
-    """Replace every per-Gaussian tensor by ``cat(old[keep], new_rows[name])`` (and face_ids likewise),
-    carrying Adam moments along: kept rows keep theirs, new rows get zeros. keep [K] long indices."""
+    """Make the live Gaussians ``cat(old[keep], new_rows[name])`` (and face_ids likewise), carrying Adam
+    moments along: kept rows keep theirs, new rows get zeros. keep [K] long indices of live rows.
+
+    Without capacity buffers every per-Gaussian tensor is replaced; with them the rows are rewritten in
+    place (buffers outgrown: reallocated, :func:`grown_capacity`)."""
     n_new = 0 if new_face_ids is None else int(new_face_ids.shape[0])
+    rows = int(keep.shape[0]) + n_new
+    capacity = None
+    if avatar.live_rows is not None:
+        capacity = avatar.capacity if rows <= avatar.capacity else grown_capacity(rows)
+    _place_rows(avatar, optimizer, keep, new_rows or {}, new_face_ids, capacity)
+
+
+def use_capacity(avatar, optimizer: torch.optim.Optimizer | None, max_gaussians: int = 0) -> None:
+    """Put ``avatar``'s Gaussians (and ``optimizer``'s moments of them) into capacity buffers: the density
+    cap's rows where it holds them all, else :func:`grown_capacity`'s."""
+    n = avatar.num_gaussians
+    keep = torch.arange(n, device=avatar.means.device)
+    _place_rows(avatar, optimizer, keep, {}, None, grown_capacity(n, max_gaussians))
+
+
+def grown_capacity(rows: int, cap: int = 0) -> int:
+    """Buffer rows for ``rows`` live Gaussians: ``cap`` where it holds them, else half as many again, in
+    whole 1,024s (a few re-allocations in a run, each a new CUDA graph capture)."""
+    return cap if cap >= rows else -(-(rows * 3 // 2) // 1024) * 1024
+
+
+def _unused_rows(name: str, like: torch.Tensor, k: int) -> torch.Tensor:
+    """What an unused row of parameter ``name`` holds: zeros (an identity rotation for quats); finite,
+    so that its zero opacity keeps it out of every image and gradient."""
+    rows = like.new_zeros((k,) + tuple(like.shape[1:]))
+    if name == "quats":
+        rows[:, 0] = 1.0
+    return rows
+
+
+def _fill(old: torch.Tensor, rows: torch.Tensor, capacity: int | None, unused: torch.Tensor | None) -> torch.Tensor:
+    """``rows`` then ``unused`` to ``capacity`` rows: in ``old``'s memory where it has that many rows,
+    else a new tensor (``capacity`` None: ``rows`` alone)."""
+    if capacity is None:
+        return rows.contiguous()
+    if old.shape[0] == capacity:
+        old[: rows.shape[0]] = rows
+        old[rows.shape[0]:] = unused
+        return old
+    return torch.cat((rows, unused), 0)
+
+
+def _place_rows(avatar, optimizer, keep, new_rows: dict, new_face_ids, capacity: int | None) -> None:
+    """The live rows ``cat(old[keep], new_rows)`` into tensors of ``capacity`` rows (None: exactly that
+    many), with the moments, face_ids and the capacity mask (``rebuild_gaussians``)."""
+    n_new = 0 if new_face_ids is None else int(new_face_ids.shape[0])
+    n = int(keep.shape[0]) + n_new
+    pad = 0 if capacity is None else capacity - n
     for name in GAUSSIAN_PARAMS:
         old = getattr(avatar, name)
-        data = old.data[keep]
+        rows = old.data[keep]
         if n_new:
-            data = torch.cat((data, new_rows[name].to(data.dtype)), dim=0)
-        new = nn.Parameter(data.contiguous(), requires_grad=old.requires_grad)
+            rows = torch.cat((rows, new_rows[name].to(rows.dtype)), dim=0)
+        data = _fill(old.data, rows, capacity, _unused_rows(name, rows, pad))
+        new = old if data is old.data else nn.Parameter(data, requires_grad=old.requires_grad)
         where = _find_in_optimizer(optimizer, old) if optimizer is not None else None
         if where is not None:
-            gi, pi = where
             state = optimizer.state.pop(old, None)
             if state:
                 for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
                     if key in state and torch.is_tensor(state[key]) and state[key].shape == old.shape:
                         moment = state[key][keep]
-                        if n_new:
-                            moment = torch.cat((moment, moment.new_zeros((n_new,) + moment.shape[1:])), 0)
-                        state[key] = moment.contiguous()
+                        moment = torch.cat((moment, moment.new_zeros((n_new + pad,) + moment.shape[1:])), 0)
+                        state[key] = _fill(state[key], moment[:n], capacity, moment[n:])
                 optimizer.state[new] = state
-            optimizer.param_groups[gi]["params"][pi] = new
-        setattr(avatar, name, new)
+            optimizer.param_groups[where[0]]["params"][where[1]] = new
+        if new is not old:
+            setattr(avatar, name, new)
     face_ids = avatar.face_ids[keep]
     if n_new:
         face_ids = torch.cat((face_ids, new_face_ids.to(face_ids)), 0)
-    avatar.face_ids = face_ids
+    unused_face = avatar.binding_faces[:1].expand(pad).to(face_ids)
+    avatar.face_ids = _fill(avatar.face_ids, face_ids, capacity, unused_face)
+    _set_live(avatar, n, capacity)
+
+
+def _set_live(avatar, n: int, capacity: int | None) -> None:
+    """The capacity mask of ``n`` live rows out of ``capacity`` (None: off), in place where it fits."""
+    if capacity is None:
+        avatar.live_rows, avatar.live, avatar.row_weights = None, None, None
+        return
+    live = (torch.arange(capacity, device=avatar.means.device) < n).to(avatar.means.dtype)
+    weights = live / n
+    if avatar.live is not None and avatar.live.shape == live.shape:
+        avatar.live.copy_(live)
+        avatar.row_weights.copy_(weights)
+        avatar.refresh_row_caches()  # the face slots and the rectifier's inputs, in place too
+    else:
+        avatar.live, avatar.row_weights = live, weights
+    avatar.live_rows = n
+
+
+def live_optimizer_state(optimizer: torch.optim.Optimizer, avatar) -> dict:
+    """``optimizer.state_dict()`` with the moments of the avatar's live Gaussians only (a checkpoint's;
+    the same as without capacity buffers)."""
+    state = optimizer.state_dict()
+    if avatar.live_rows is None:
+        return state
+    gaussians = {id(getattr(avatar, name)) for name in GAUSSIAN_PARAMS}
+    params = [p for group in optimizer.param_groups for p in group["params"]]  # state_dict's numbering
+    n, live = avatar.live_rows, {}
+    for index, values in state["state"].items():
+        if id(params[index]) in gaussians:
+            values = {k: v[:n].clone() if torch.is_tensor(v) and v.dim() > 0 else v for k, v in values.items()}
+        live[index] = values
+    return {**state, "state": live}
 
 
 def world_rest_scale(avatar) -> torch.Tensor:
@@ -156,12 +252,13 @@ def densify(
 ) -> tuple[int, int]:
     """Clone small / split large Gaussians whose average view-space gradient >= threshold.
 
-    grad_avg [N]. Returns (number cloned, number split). ``max_gaussians`` > 0 caps the count: the
-    Gaussians with the largest gradients go first.
+    grad_avg [N] (or [capacity]). Returns (number cloned, number split). ``max_gaussians`` > 0 caps the
+    count: the Gaussians with the largest gradients go first.
     """
     n = avatar.num_gaussians
-    if grad_avg.shape != (n,):
+    if grad_avg.shape not in ((n,), (avatar.capacity,)):
         raise ValueError(f"grad_avg must be [{n}], got {tuple(grad_avg.shape)}")
+    grad_avg = grad_avg[:n]
     extent = float(avatar.rest_extent) if extent is None else extent
     selected = grad_avg >= grad_threshold
     if max_gaussians > 0:
@@ -170,13 +267,13 @@ def densify(
             order = torch.argsort(torch.where(selected, grad_avg, -math.inf), descending=True)
             selected = torch.zeros_like(selected)
             selected[order[:room]] = True
-    small = world_rest_scale(avatar) <= percent_dense * extent
+    small = world_rest_scale(avatar)[:n] <= percent_dense * extent
     clone = selected & small
     split = selected & ~small
     n_clone, n_split = int(clone.sum()), int(split.sum())
     if n_clone + n_split == 0:
         return 0, 0
-    params = {name: getattr(avatar, name).detach() for name in GAUSSIAN_PARAMS}
+    params = {name: getattr(avatar, name).detach()[:n] for name in GAUSSIAN_PARAMS}
     ci = clone.nonzero().squeeze(-1)
     si = split.nonzero().squeeze(-1)
     rows = {name: [p[ci], p[si].repeat(2, *([1] * (p.dim() - 1)))] for name, p in params.items()}
@@ -187,7 +284,8 @@ def densify(
     rows["means"][1] = rows["means"][1] + offset
     rows["log_scales"][1] = rows["log_scales"][1] - math.log(1.6)
     new_rows = {name: torch.cat(parts, 0) for name, parts in rows.items()}
-    new_faces = torch.cat((avatar.face_ids[ci], avatar.face_ids[si].repeat(2)), 0)
+    face_ids = avatar.face_ids[:n]
+    new_faces = torch.cat((face_ids[ci], face_ids[si].repeat(2)), 0)
     keep = (~split).nonzero().squeeze(-1)
     rebuild_gaussians(avatar, optimizer, keep, new_rows, new_faces)
     return n_clone, n_split
@@ -215,8 +313,10 @@ def prune_mask(opacities: torch.Tensor, face_ids: torch.Tensor, threshold: float
 
 def prune(avatar, optimizer: torch.optim.Optimizer | None, min_opacity: float = 0.005) -> int:
     """Remove Gaussians with opacity < min_opacity, never a face's last one. Returns how many went."""
+    n = avatar.num_gaussians
     with torch.no_grad():
-        remove = prune_mask(torch.sigmoid(avatar.opacity_logits), avatar.face_ids, min_opacity, avatar.faces.shape[0])
+        remove = prune_mask(torch.sigmoid(avatar.opacity_logits[:n]), avatar.face_ids[:n], min_opacity,
+                            avatar.faces.shape[0])
     n = int(remove.sum())
     if n:
         rebuild_gaussians(avatar, optimizer, (~remove).nonzero().squeeze(-1))
@@ -227,7 +327,7 @@ def reset_opacity(avatar, optimizer: torch.optim.Optimizer | None, max_opacity: 
     """opacity = min(opacity, max_opacity) in place; the opacity's Adam moments are cleared."""
     cap = math.log(max_opacity / (1 - max_opacity))
     with torch.no_grad():
-        avatar.opacity_logits.clamp_(max=cap)
+        avatar.opacity_logits[: avatar.num_gaussians].clamp_(max=cap)  # live rows: unused ones stay as made
     if optimizer is not None:
         state = optimizer.state.get(avatar.opacity_logits)
         if state:
@@ -253,8 +353,17 @@ class DensityController:
         self.generator = torch.Generator(device=avatar.means.device).manual_seed(seed)
         self._zero_stats()
 
+    def use_capacity(self) -> None:
+        """Put the avatar's Gaussians into capacity buffers (:func:`use_capacity`; the cap's rows where
+        there is one), the statistics with them."""
+        n = self.avatar.num_gaussians
+        use_capacity(self.avatar, self.optimizer, self.config.max_gaussians)
+        pad = self.avatar.capacity - n
+        self.grad_accum = torch.cat((self.grad_accum, self.grad_accum.new_zeros(pad)))
+        self.count = torch.cat((self.count, self.count.new_zeros(pad)))
+
     def _zero_stats(self) -> None:
-        n, dev = self.avatar.num_gaussians, self.avatar.means.device
+        n, dev = self.avatar.capacity, self.avatar.means.device  # a row per Gaussian, unused ones included
         self.grad_accum = torch.zeros(n, device=dev)
         self.count = torch.zeros(n, device=dev)
 
@@ -317,13 +426,15 @@ class DensityController:
         return {"cloned": cloned, "split": split, "pruned": pruned}
 
     def state_dict(self) -> dict:
-        return {"grad_accum": self.grad_accum.clone(), "count": self.count.clone(),
+        """The statistics of the live Gaussians (as without capacity buffers) and the generator's state."""
+        n = self.avatar.num_gaussians
+        return {"grad_accum": self.grad_accum[:n].clone(), "count": self.count[:n].clone(),
                 "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
-        n = self.avatar.num_gaussians
+        n, pad = self.avatar.num_gaussians, self.avatar.capacity - self.avatar.num_gaussians
         if state["grad_accum"].shape != (n,):
             raise ValueError(f"density state is for {state['grad_accum'].shape[0]} Gaussians, the avatar has {n}")
-        self.grad_accum = state["grad_accum"].to(self.avatar.means.device).clone()
-        self.count = state["count"].to(self.avatar.means.device).clone()
+        stats = [state[k].to(self.avatar.means.device) for k in ("grad_accum", "count")]
+        self.grad_accum, self.count = (torch.cat((t, t.new_zeros(pad))) for t in stats)
         self.generator.set_state(state["generator"])

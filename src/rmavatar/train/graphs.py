@@ -70,17 +70,21 @@ class _Posing(nn.Module):
 
 class _Losses:
     """:func:`total_loss` as a function of tensors only: (image, target, local_means, local_log_scales,
-    *offsets, *lpips units, *lpips window) -> (loss, the terms stacked [T]); ``names`` are the terms'."""
+    *row weights, *offsets, *lpips units, *lpips window) -> (loss, the terms stacked [T]); ``names`` are
+    the terms'."""
 
-    def __init__(self, cfg: LossConfig, layout: tuple[int, int, int]):
-        self.cfg, self.layout = cfg, layout  # how many offsets, LPIPS units and window tensors are given
+    def __init__(self, cfg: LossConfig, layout: tuple[int, int, int, int]):
+        # how many row-weight, offset, LPIPS unit and window tensors are given
+        self.cfg, self.layout = cfg, layout
         self.names: list[str] = []
 
     def __call__(self, image, target, means, log_scales, *rest):
-        n_off, n_units, n_window = self.layout
+        n_rows, n_off, n_units, n_window = self.layout
+        row_weights, rest = rest[:n_rows], rest[n_rows:]
         offsets, rest = rest[:n_off], rest[n_off:]
         units, window = rest[:n_units], rest[n_units:n_units + n_window]
-        extras = AvatarExtras(local_means=means, local_log_scales=log_scales, offsets=tuple(offsets) or None)
+        extras = AvatarExtras(local_means=means, local_log_scales=log_scales, offsets=tuple(offsets) or None,
+                              row_weights=row_weights[0] if row_weights else None)
         loss, parts = total_loss(image, target, extras, self.cfg, lpips_units=list(units) or None,
                                  lpips_window=tuple(window) or None)
         self.names = list(parts)
@@ -140,8 +144,9 @@ class StepGraphs:
         """``total_loss`` of the rendered ``image`` [H,W,3] against ``target``, with the avatar's local
         means and log-scales and the posed frame's offsets: (loss, each term by name)."""
         units, window, offsets = tuple(lpips_units or ()), tuple(lpips_window or ()), posed.offsets or ()
-        inputs = (image, target, self.avatar.means, self.avatar.log_scales, *offsets, *units, *window)
-        layout = (len(offsets), len(units), len(window))
+        rows = () if self.avatar.row_weights is None else (self.avatar.row_weights,)  # capacity buffers
+        inputs = (image, target, self.avatar.means, self.avatar.log_scales, *rows, *offsets, *units, *window)
+        layout = (len(rows), len(offsets), len(units), len(window))
         fn, terms = self._callable("_losses", lambda: ("loss", layout, _describe(inputs)), layout,
                                    lambda: _Losses(self.loss, layout), inputs)
         loss, values = fn(*inputs)

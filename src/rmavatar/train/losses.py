@@ -57,63 +57,84 @@ class LossConfig:
 ImageFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-def position_loss(local_means: torch.Tensor, eps: float = 1.0) -> torch.Tensor:
+def _row_mean(values: torch.Tensor, row_weights: torch.Tensor | None) -> torch.Tensor:
+    """Mean over rows of ``values`` [N]; with ``row_weights`` [N] (capacity buffers: 1/live for a live
+    row, 0 for an unused one) the mean over the live rows."""
+    return values.mean() if row_weights is None else (values * row_weights).sum()
+
+
+def position_loss(local_means: torch.Tensor, eps: float = 1.0, row_weights: torch.Tensor | None = None) -> torch.Tensor:
     """mean over Gaussians of max(|mu| - eps, 0); local_means [N,3] in units of the triangle scale."""
-    return torch.relu(torch.linalg.vector_norm(local_means, dim=-1) - eps).mean()
+    return _row_mean(torch.relu(torch.linalg.vector_norm(local_means, dim=-1) - eps), row_weights)
 
 
-def scaling_loss(local_log_scales: torch.Tensor, eps: float = 0.6) -> torch.Tensor:
+def scaling_loss(local_log_scales: torch.Tensor, eps: float = 0.6, row_weights: torch.Tensor | None = None) -> torch.Tensor:
     """mean over Gaussians of || max(exp(log_s) - eps, 0) ||; local_log_scales [N,3]."""
-    return torch.linalg.vector_norm(torch.relu(torch.exp(local_log_scales) - eps), dim=-1).mean()
+    return _row_mean(torch.linalg.vector_norm(torch.relu(torch.exp(local_log_scales) - eps), dim=-1), row_weights)
 
 
-def offset_loss(d_mu: torch.Tensor, d_s: torch.Tensor, d_r: torch.Tensor) -> torch.Tensor:
+def offset_loss(d_mu: torch.Tensor, d_s: torch.Tensor, d_r: torch.Tensor,
+                row_weights: torch.Tensor | None = None) -> torch.Tensor:
     """mean(d_mu^2) + mean(d_r^2) + mean(d_s^2) of the rectifier's outputs [N,3], [N,3], [N,4]."""
-    return d_mu.square().mean() + d_r.square().mean() + d_s.square().mean()
+    if row_weights is None:
+        return d_mu.square().mean() + d_r.square().mean() + d_s.square().mean()
+    return sum((d.square().mean(-1) * row_weights).sum() for d in (d_mu, d_r, d_s))
 
 
 class _Regularisers(torch.autograd.Function):
     """(L_pos, L_scaling, L_offset) [3] in one go, with the backward written out (about half the
     operations autograd records for the three functions above, which define them).
 
-    (local_means [N,3], local_log_scales [N,3], d_mu [N,3], d_s [N,3], d_r [N,4], eps_pos, eps_scaling)."""
+    (local_means [N,3], local_log_scales [N,3], d_mu [N,3], d_s [N,3], d_r [N,4], eps_pos, eps_scaling,
+    row_weights [N] or None: each row's weight in the means, as :func:`position_loss`'s)."""
 
     @staticmethod
-    def forward(ctx, means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling):
+    def forward(ctx, means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling, row_weights=None):
         n = torch.linalg.vector_norm(means, dim=-1)
         excess = torch.relu(n - eps_pos)
         e = torch.exp(log_scales)
         over = torch.relu(e - eps_scaling)
         over_norm = torch.linalg.vector_norm(over, dim=-1)
         offsets = torch.cat((d_mu, d_s, d_r), dim=-1)  # [N,10]
-        # per-Gaussian sums, then one product with the weights that make each term's mean
-        parts = torch.cat((excess.sum().view(1), over_norm.sum().view(1),
-                           torch.einsum("ni,ni->i", offsets, offsets)))  # [12]
-        weights, _ = _regulariser_weights(means.shape[0], (d_mu.shape[1], d_s.shape[1], d_r.shape[1]),
-                                          means.dtype, means.device)
-        ctx.save_for_backward(means, n, excess, e, over, over_norm, offsets)
+        # per-Gaussian sums (weighted by row_weights, which hold the 1/N), then one product with the
+        # weights that make each term's mean
+        if row_weights is None:
+            parts = torch.cat((excess.sum().view(1), over_norm.sum().view(1),
+                               torch.einsum("ni,ni->i", offsets, offsets)))  # [12]
+        else:
+            # products, then sums (cascaded: a matrix-vector product adds 10^5 rows in one long run)
+            parts = torch.cat(((torch.stack((excess, over_norm)) * row_weights).sum(-1),
+                               (offsets.square() * row_weights.unsqueeze(-1)).sum(0)))
+        count = means.shape[0] if row_weights is None else 1
+        weights, _ = _regulariser_weights(count, (d_mu.shape[1], d_s.shape[1], d_r.shape[1]), means.dtype,
+                                          means.device)
+        ctx.count = count
+        ctx.save_for_backward(means, n, excess, e, over, over_norm, offsets, row_weights)
         ctx.widths = (d_mu.shape[1], d_s.shape[1], d_r.shape[1])
         return weights @ parts
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        means, n, excess, e, over, over_norm, offsets = ctx.saved_tensors
-        _, backward_weights = _regulariser_weights(means.shape[0], ctx.widths, means.dtype, means.device)
+        means, n, excess, e, over, over_norm, offsets, row_weights = ctx.saved_tensors
+        _, backward_weights = _regulariser_weights(ctx.count, ctx.widths, means.dtype, means.device)
         c = torch.mv(backward_weights, grad)  # [12]: d loss / d each per-Gaussian sum, times 2 for the squares
         tiny = torch.finfo(n.dtype).tiny  # |mu| = 0 or |over| = 0: that Gaussian's term has no gradient
+        rows = c[:2] if row_weights is None else row_weights.unsqueeze(-1) * c[:2]  # [N,2] or [2]
         # d|mu|/dmu = mu / |mu| where |mu| > eps_pos (sign(excess) is that mask)
-        g_means = means * (torch.sign(excess) / n.clamp_min(tiny) * c[0]).unsqueeze(-1)
+        g_means = means * (torch.sign(excess) / n.clamp_min(tiny) * rows[..., 0]).unsqueeze(-1)
         # d|over|/dlog_s = over / |over| * e (over = 0 where the relu is off)
-        g_scales = over * e / over_norm.clamp_min(tiny).unsqueeze(-1) * c[1]
-        g_off = (offsets * c[2:]).split(ctx.widths, dim=-1)  # d(x^2) = 2 x, the 2 in backward_weights
-        return g_means, g_scales, *g_off, None, None
+        g_scales = over * e / over_norm.clamp_min(tiny).unsqueeze(-1) * rows[..., 1:]
+        g_off = offsets * c[2:]
+        if row_weights is not None:
+            g_off = g_off * row_weights.unsqueeze(-1)
+        return g_means, g_scales, *g_off.split(ctx.widths, dim=-1), None, None, None
 
     @staticmethod
-    def reference(means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling) -> torch.Tensor:
+    def reference(means, log_scales, d_mu, d_s, d_r, eps_pos, eps_scaling, row_weights=None) -> torch.Tensor:
         """The same [3] under plain autograd: the three functions that define the terms (for tests)."""
-        return torch.stack((position_loss(means, eps_pos), scaling_loss(log_scales, eps_scaling),
-                            offset_loss(d_mu, d_s, d_r)))
+        return torch.stack((position_loss(means, eps_pos, row_weights), scaling_loss(log_scales, eps_scaling, row_weights),
+                            offset_loss(d_mu, d_s, d_r, row_weights)))
 
 
 @functools.lru_cache(maxsize=32)
@@ -266,19 +287,19 @@ def total_loss(
         values.append(("ssim", (ssim_fn or _default_ssim)(render, target).view(1)))
     if w["lpips"]:
         values.append(("lpips", _lpips_term(render, target, lpips_fn, lpips_units, lpips_window).view(1)))
-    means, log_scales, offsets = (None, None, None) if extras is None else (
-        extras.local_means, extras.local_log_scales, extras.offsets)
+    means, log_scales, offsets, rw = (None, None, None, None) if extras is None else (
+        extras.local_means, extras.local_log_scales, extras.offsets, extras.row_weights)
     if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):
         # the full model: all three in one autograd Function
         values.append(("regularisers", _Regularisers.apply(means, log_scales, *offsets, weights.eps_pos,
-                                                           weights.eps_scaling)))
+                                                           weights.eps_scaling, rw)))
     else:  # ablations and avatars without a rectifier: only the terms asked for
         if w["pos"] and means is not None:
-            values.append(("pos", position_loss(means, weights.eps_pos).view(1)))
+            values.append(("pos", position_loss(means, weights.eps_pos, rw).view(1)))
         if w["scaling"] and log_scales is not None:
-            values.append(("scaling", scaling_loss(log_scales, weights.eps_scaling).view(1)))
+            values.append(("scaling", scaling_loss(log_scales, weights.eps_scaling, rw).view(1)))
         if w["offset"] and offsets is not None:
-            values.append(("offset", offset_loss(*offsets).view(1)))
+            values.append(("offset", offset_loss(*offsets, row_weights=rw).view(1)))
     if not values:
         return render.new_zeros(()), {}
     key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}

@@ -32,7 +32,7 @@ from rmavatar.utils import UserError, check_writable_folder
 
 # What a resumed run may change (dotted keys; "log." every reporting setting): its length, where and how
 # fast it runs, what it reports. Anything else (the model, the losses, the schedules' shape) is the run's.
-RESUME_CHANGEABLE = ("optim.iters", "threads", "device", "cuda_graphs", "log.")
+RESUME_CHANGEABLE = ("optim.iters", "threads", "device", "cuda_graphs", "density.capacity", "log.")
 # The second pass's settings, which its first pass does not use.
 HELD_FIT_KEYS = ("poses.held_fits", "poses.held_fit_steps", "poses.held_fit_lr_rotation",
                  "poses.held_fit_lr_translation")

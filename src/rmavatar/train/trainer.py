@@ -34,6 +34,7 @@ from rmavatar.data import Dataset
 from rmavatar.render import rasterize
 from rmavatar.train.checkpoint import capture_rng, restore_rng, save_checkpoint
 from rmavatar.train.config import TrainConfig, to_dict
+from rmavatar.train.density import live_optimizer_state
 from rmavatar.train.frames import FRAME_CACHE_BYTES, FrameCache, FrameSampler, background_color, open_dataset
 from rmavatar.train.graphs import StepGraphs
 from rmavatar.train.pose_refine import PoseFiles, load_pose_state
@@ -111,6 +112,8 @@ class Trainer:
             load_pose_state(self.poses, ckpt.poses, where)
             self.iteration = int(ckpt.iteration)
             print(f"resuming {self.run_folder.path} from iteration {self.iteration} of {cfg.optim.iters}", flush=True)
+        if cfg.density.enabled and (self.graphs.enabled if cfg.density.capacity is None else cfg.density.capacity):
+            self.density.use_capacity()  # fixed shapes between density events: graphs stay captured
         if self.poses is not None:
             poses = self.poses.start_poses(poses, self.run_folder.pose_pass, params["index"], split, ckpt is not None)
         self.frames.hold(poses, self.avatar.pose_input)
@@ -127,7 +130,8 @@ class Trainer:
         cfg, run = self.cfg, self.run_folder
         save_checkpoint(run.checkpoint, Checkpoint(
             iteration=self.iteration, config=to_dict(cfg), data_spec=cfg.data.path, body=self.body_info,
-            betas=self.betas, avatar=self.avatar.checkpoint_state(), optimizer=self.optimizer.state_dict(),
+            betas=self.betas, avatar=self.avatar.checkpoint_state(),
+            optimizer=live_optimizer_state(self.optimizer, self.avatar),
             density=self.density.state_dict(), sampler=self.sampler.state_dict(), rng=capture_rng(self.bg_generator),
             poses=None if self.poses is None else self.poses.state_dict(), saved_at=time.time()))
         self.pose_error = self.pose_files.write(run, self.iteration, self.poses)
