@@ -93,7 +93,9 @@ def bench_step(d) -> dict | None:
         return None
     counts = d.get("counts") or {}
     return {"step_median_ms": _ms(d.get("step_median_s")), "iterations_per_s": d.get("iterations_per_s"),
-            "gaussians": d.get("gaussians"), "cuda_graphs": (d.get("cuda_graphs") or {}).get("used"),
+            "gaussians": d.get("gaussians"), "capacity": d.get("capacity"),
+            "cuda_graphs": (d.get("cuda_graphs") or {}).get("used"),
+            "captures": (d.get("cuda_graphs") or {}).get("captures"),
             "host_syncs_per_step": counts.get("syncs_per_step"), "ops_per_step": counts.get("ops_per_step"),
             "stages_ms": {k: _ms(v.get("wall_s")) for k, v in (d.get("stages") or {}).items()},
             "other_ms": _ms((d.get("other") or {}).get("wall_s"))}
@@ -158,7 +160,8 @@ def summary(r: dict) -> str:
     for key, what in (("bench_step", "training step"), ("bench_step_eager", "eager step"),
                       ("bench_step_refine", "refining step")):
         if b := r.get(key):
-            lines.append(f"  {what}: {_f(b['step_median_ms'])} ms median, {b['gaussians']} Gaussians, "
+            rows = f" in buffers of {b['capacity']} rows" if b.get("capacity") else ""
+            lines.append(f"  {what}: {_f(b['step_median_ms'])} ms median, {b['gaussians']} Gaussians{rows}, "
                          f"{_f(b['host_syncs_per_step'])} host syncs/step, CUDA graphs {b['cuda_graphs']}")
     if t := r["train"]:
         lines.append(f"  training: {t['iterations']} iterations in {_f(t['seconds'], '.0f')} s "
