@@ -341,14 +341,33 @@ def read_checkpoint(path: str | os.PathLike) -> Checkpoint:
 
 # ----------------------------------------------------------------------------------------------- the body
 def body_signature(body: Any) -> dict:
-    """What makes a checkpoint usable with a body model: its spec and a hash of its topology."""
+    """What makes a checkpoint usable with a body model: its spec, a hash of its topology and one of its
+    body offsets (None without)."""
     faces = body.faces.detach().cpu().to(torch.int64).contiguous().numpy()
+    offsets = getattr(body, "offsets", None)
     return {
         "spec": str(body.spec),
         "num_vertices": int(body.v_template.shape[0]),
         "num_faces": int(faces.shape[0]),
         "faces_sha1": hashlib.sha1(faces.tobytes()).hexdigest(),
+        "offsets_sha1": None if offsets is None else hashlib.sha1(offsets.cpu().numpy().tobytes()).hexdigest(),
     }
+
+
+def body_info(body: Any, gender: str | None) -> dict:
+    """What a checkpoint keeps of its body (``Checkpoint.body``): the signature, the gender and the body
+    offsets [V] (None without), from which :func:`load_saved_body` builds it again."""
+    offsets = getattr(body, "offsets", None)
+    return {**body_signature(body), "gender": gender, "offsets": None if offsets is None else offsets.cpu().clone()}
+
+
+def load_saved_body(saved: dict, where: str):
+    """The body model a checkpoint's ``body`` (:func:`body_info`) describes, checked against it."""
+    from rmavatar.body import load_body_model
+
+    body = load_body_model(saved["spec"], gender=saved.get("gender"), offsets=saved.get("offsets"))
+    check_body(saved, body, where)
+    return body
 
 
 def check_body(saved: dict, body: Any, where: str) -> None:
@@ -362,6 +381,10 @@ def check_body(saved: dict, body: Any, where: str) -> None:
             f"{saved['num_faces']} faces), which is incompatible with {now['spec']!r} "
             f"({now['num_vertices']} vertices, {now['num_faces']} faces)"
         )
+    if saved.get("offsets_sha1") != now["offsets_sha1"]:
+        raise UserError(f"{where} was trained on {saved['spec']!r} "
+                        f"{'with' if saved.get('offsets_sha1') else 'without'} body offsets (a fitted shape); "
+                        f"the body given has {'other' if now['offsets_sha1'] else 'no'} offsets")
 
 
 def training_betas(params: dict) -> torch.Tensor:

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from rmavatar.avatar.model import Avatar
-from rmavatar.avatar.run import RunFolder, check_body, training_betas
-from rmavatar.body import PoseSequence, apply_pose_corrections, load_body_model, posed_vertices, rest_pose
+from rmavatar.avatar.run import RunFolder, load_saved_body, training_betas
+from rmavatar.body import PoseSequence, apply_pose_corrections, posed_vertices, rest_pose
 from rmavatar.body.poses import hands_given
 from rmavatar.render.gaussians import GaussianSet, render_gaussians
 from rmavatar.utils import UserError
@@ -150,8 +150,7 @@ def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu")
     run.check_trained()
     path = run.checkpoint
     ckpt = run.read_checkpoint()
-    body = load_body_model(ckpt.body["spec"], gender=ckpt.body.get("gender"))
-    check_body(ckpt.body, body, str(path))
+    body = load_saved_body(ckpt.body, str(path))
     avatar = Avatar.from_state(body, ckpt.avatar, where=str(path))
     avatar.eval()
     config = ckpt.config

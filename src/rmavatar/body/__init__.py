@@ -1,6 +1,6 @@
 """Body models driven by SMPL-format parameters: user-supplied SMPL files and the free Anny body.
 
-``load_body_model("anny" | "anny:PRESET" | "smpl:PATH", gender=None) -> BodyModel``; see
+``load_body_model("anny" | "anny:PRESET" | "smpl:PATH", gender=None, offsets=None) -> BodyModel``; see
 :class:`rmavatar.body.base.BodyModel` for the interface and ``docs/body.md`` for the user guide.
 """
 
@@ -23,8 +23,9 @@ __all__ = [
 _GENDERS = ("neutral", "male", "female")
 
 
-def load_body_model(spec: str, gender: str | None = None) -> BodyModel:
-    """Build a body from a spec string (the CLI's ``--body``).
+def load_body_model(spec: str, gender: str | None = None, offsets=None) -> BodyModel:
+    """Build a body from a spec string (the CLI's ``--body``); ``offsets`` [V] (Anny only): body offsets,
+    metres along the rest normals (a shape fitted to a person, ``AnnyBody``).
 
     - ``"anny"``: the Anny body; the preset follows ``gender`` (``male``/``female``, else ``neutral``).
     - ``"anny:PRESET"``: a named Anny phenotype (``neutral``, ``male``, ``female``, ``child``).
@@ -38,7 +39,9 @@ def load_body_model(spec: str, gender: str | None = None) -> BodyModel:
     if kind == "anny":
         from rmavatar.body.anny import AnnyBody
 
-        return AnnyBody(arg or (gender if gender in ("male", "female") else "neutral"))
+        return AnnyBody(arg or (gender if gender in ("male", "female") else "neutral"), offsets)
+    if offsets is not None:
+        raise UserError(f"body offsets are for the Anny body; {spec!r} takes its shape from its betas")
     if kind == "smpl":
         if not arg:
             raise UserError("--body smpl needs a path: smpl:PATH (an SMPL .pkl/.npz file or a folder)")

@@ -11,7 +11,10 @@ Attributes of :class:`AnnyBody` beyond the :class:`~rmavatar.body.base.BodyModel
   ``eye_cavity.L``, ``mouth_cavity``, ``tongue``);
 - ``bone_names`` (104 Anny bones), ``bone_parents``, ``rest_vertices`` / ``rest_heads`` (Anny's A-pose
   rest in our frame), ``skin_weights [V,104]``;
-- ``preset`` and ``phenotype`` (Anny phenotype values of the preset).
+- ``preset`` and ``phenotype`` (Anny phenotype values of the preset);
+- ``rest_normals [V,3]``: unit vertex normals of the preset's rest mesh; ``offsets [V]`` (or None): the
+  body offsets it was built with, metres along those normals (a shape fitted to a person's outline,
+  ``rmavatar capture``); the rest vertices are moved by them before posing.
 
 ``betas`` are ignored: Anny's shape comes from the preset's phenotype, not from SMPL's shape space.
 
@@ -237,6 +240,29 @@ def load_template() -> tuple[dict[str, torch.Tensor], dict]:
     raise UserError(f"the Anny template {path} does not match this rmavatar's presets after a rebuild")
 
 
+MAX_OFFSET = 0.3  # metres: body offsets beyond this are not a body's shape
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals [V,3] of a closed mesh: the area-weighted sum of its faces' normals."""
+    tri = vertices[faces]
+    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = twice the area
+    normals = np.zeros_like(vertices)
+    for corner in range(3):
+        np.add.at(normals, faces[:, corner], face_normals)
+    return normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+
+
+def check_offsets(offsets, num_vertices: int) -> torch.Tensor:
+    """Body offsets as a float32 tensor [V], or UserError naming what is wrong with them."""
+    d = torch.as_tensor(np.asarray(offsets, dtype=np.float32))
+    if d.shape != (num_vertices,):
+        raise UserError(f"body offsets must be one value per Anny vertex ([{num_vertices}]), got {tuple(d.shape)}")
+    if not bool(torch.isfinite(d).all()) or float(d.abs().max()) > MAX_OFFSET:
+        raise UserError(f"body offsets must be finite and within +-{MAX_OFFSET} m of the surface")
+    return d
+
+
 def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking direction ``a`` onto direction ``b`` (3x3)."""
     a = a / np.linalg.norm(a)
@@ -283,7 +309,7 @@ def _flat_fingers(source: list[int], Q: np.ndarray, heads: np.ndarray, verts: np
 class AnnyBody(BodyModel):
     """Anny posed by SMPL-format parameters (see the module docstring for attributes and conventions)."""
 
-    def __init__(self, preset: str = DEFAULT_PRESET):
+    def __init__(self, preset: str = DEFAULT_PRESET, offsets=None):
         super().__init__()
         if preset not in PRESETS:
             raise UserError(f"unknown Anny preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -340,7 +366,11 @@ class AnnyBody(BodyModel):
         self.register_buffer("hand_point_bones", torch.tensor(hand_point_bones), persistent=False)
         self.register_buffer("fingertip_vertices", torch.tensor(tips), persistent=False)
         self.register_buffer("skin_weights", dense, persistent=False)
-        self.register_buffer("rest_vertices", torch.tensor(verts, dtype=torch.float32), persistent=False)
+        normals = vertex_normals(verts, tensors["faces"].long().numpy())
+        self.register_buffer("rest_normals", torch.tensor(normals, dtype=torch.float32), persistent=False)
+        self.offsets = None if offsets is None else check_offsets(offsets, V)
+        moved = verts if self.offsets is None else verts + self.offsets.double().numpy()[:, None] * normals
+        self.register_buffer("rest_vertices", torch.tensor(moved, dtype=torch.float32), persistent=False)
         self.register_buffer("rest_heads", torch.tensor(heads, dtype=torch.float32), persistent=False)
         self.register_buffer("faces", tensors["faces"].long(), persistent=False)
         self.register_buffer("uv", tensors["uv"].float(), persistent=False)
@@ -405,6 +435,22 @@ class AnnyBody(BodyModel):
         joints = heads[:, self.joint_bones]
         joints = torch.cat([(self.pelvis + transl)[:, None], joints[:, 1:]], 1)
         return BodyOutput(vertices=vertices, joints=joints, hand_points=self._hand_points(heads, vertices))
+
+    def offset_directions(self, global_orient: torch.Tensor, body_pose: torch.Tensor,
+                          hand_pose: torch.Tensor | None = None) -> torch.Tensor:
+        """``[B,V,3]``: how a body offset moves each posed vertex, its rest normal turned by the vertex's
+        blend of bone rotations. Skinning is linear in the rest vertices, so the body posed with offsets
+        ``d [V]`` added is the body posed without them plus ``d[:, None] *`` these (a shape fit's
+        model)."""
+        dtype, device = self.rest_vertices.dtype, self.rest_vertices.device
+        _, global_orient, body_pose, _ = check_pose_inputs(None, global_orient, body_pose, None, 0, dtype, device)
+        hand_pose = check_hand_pose(hand_pose, global_orient.shape[0], dtype, device, True)
+        rotations = self.bone_rotations(global_orient, body_pose, hand_pose)
+        _, _, T = lbs(self.rest_vertices[None], self.rest_heads[None], self.bone_parents, rotations,
+                      self.skin_weights)
+        B, J = T.shape[:2]
+        blended = (self.skin_weights @ T[..., :3, :3].reshape(B, J, 9).permute(1, 0, 2).reshape(J, B * 9))
+        return (blended.reshape(-1, B, 3, 3).permute(1, 0, 2, 3) @ self.rest_normals[None, :, :, None])[..., 0]
 
     def _hand_points(self, heads: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
         """``[B,42,3]`` in MediaPipe's order: bone heads for the wrist and the finger joints, a vertex at

@@ -145,10 +145,8 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay:
         from PIL import Image
 
-        from rmavatar.body import load_body_model
-
         spec = args.body or ds.body or "anny"
-        body = load_body_model(spec, gender=ds.gender)
+        body = ds.body_model(spec)
         small = load_dataset(args.data, size=args.size or 256, cache_mb=64, **options)
         sheet = overlay_sheet(small, body, per_split=max(1, args.frames))
         with output_file(args.overlay, option="--overlay", overwrite=args.overwrite, suffixes=(".png",)) as tmp:

@@ -74,6 +74,8 @@ class Dataset:
     Attributes: kind ("native", "peoplesnapshot", "zju"), name, gender ("male"/"female"/"neutral"/None),
     body (a body preset such as "anny:female" or None), fps (None where unknown), root (the folder),
     poses_estimated (True when the poses were estimated from the video alone, by ``rmavatar capture``),
+    body_offsets ([V] float32 metres along the Anny body's rest normals: a shape fitted to the person by
+    ``rmavatar capture``; None: the preset's shape),
     splits (split -> list of source frame indices), source_size and image_size ((width, height) before
     and after resizing).
     ``frame(split, i)`` takes the position ``i`` in the split (0 <= i < num_frames(split)); the returned
@@ -83,8 +85,10 @@ class Dataset:
     def __init__(self, *, kind: str, name: str, root: Path, records: dict[str, list[FrameRecord]],
                  source_size: tuple[int, int], gender: str | None = None, body: str | None = None,
                  fps: float | None = None, size=None, cache_mb: float = 1024.0,
-                 mask_reader: Callable[[Path], np.ndarray] = read_mask, poses_estimated: bool = False):
+                 mask_reader: Callable[[Path], np.ndarray] = read_mask, poses_estimated: bool = False,
+                 body_offsets: np.ndarray | None = None):
         self.kind = kind
+        self.body_offsets = None if body_offsets is None else np.asarray(body_offsets, np.float32)
         self.poses_estimated = bool(poses_estimated)
         self.name = name
         self.root = Path(root)
@@ -115,6 +119,20 @@ class Dataset:
     def camera(self, split: str, i: int) -> Camera:
         """The camera of frame ``i`` of ``split`` at the output image size (no pixels are read)."""
         return self._record(split, i).camera.resized(*self.image_size)
+
+    def body_model(self, spec: str | None = None, gender: str | None = None):
+        """The body model for this dataset's poses: ``spec`` (default: the dataset's body, else Anny) of
+        ``gender`` (default: the dataset's), with the dataset's body offsets where ``spec`` is the body
+        they were fitted on (a note says so where they are left out)."""
+        from rmavatar.body import load_body_model
+
+        spec = spec or self.body or "anny"
+        offsets = self.body_offsets
+        if offsets is not None and spec != self.body:
+            print(f"note: {self.root}'s body offsets (a shape fitted to the person) are for {self.body}, not "
+                  f"{spec}: using {spec}'s own shape", flush=True)
+            offsets = None
+        return load_body_model(spec, gender=gender or self.gender, offsets=offsets)
 
     def params(self, split: str) -> dict[str, np.ndarray]:
         """The split's SMPL-format parameters stacked: betas [n,10], global_orient [n,3],

@@ -9,7 +9,9 @@ A folder::
                   (world-to-camera, OpenCV axes, metres); float32
     smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32;
                   optional finger poses: hand_pose [N,90] float32 (per hand 15 joints x 3 axis-angle, MANO
-                  order, left hand then right) and hand_found [N,2] bool (a capture saw that hand)
+                  order, left hand then right) and hand_found [N,2] bool (a capture saw that hand);
+                  optional body_offsets [V] float32: the Anny body's offsets, metres along its rest
+                  normals (a shape fitted to the person by rmavatar capture; body must be anny)
     images/00000.png ...   8-bit RGB, frame i is f"{i:05d}.png"
     masks/00000.png  ...   8-bit grey, 0-255 soft foreground coverage
 
@@ -133,6 +135,11 @@ def _check_params(params, where: str) -> dict[str, np.ndarray]:
             raise UserError(f"{where}: 'hand_found' must be [N,2] booleans (left, right hand seen), got "
                             f"{list(found.shape)} {found.dtype}")
         out["hand_found"] = found.astype(bool)
+    if get("body_offsets") is not None:
+        out["body_offsets"] = np.asarray(get("body_offsets"), dtype=np.float32)
+        if out["body_offsets"].ndim != 1:
+            raise UserError(f"{where}: 'body_offsets' must be [V] (one value per body vertex), got "
+                            f"{list(out['body_offsets'].shape)}")
     betas = out["betas"]
     if betas.ndim == 2 and betas.shape[0] == 1:
         betas = betas[0]
@@ -460,7 +467,7 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
     return Dataset(kind="native", name=doc["name"], root=root, records=records,
                    source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
                    fps=doc.get("fps"), size=size, cache_mb=cache_mb,
-                   poses_estimated=doc["poses"] == "estimated")
+                   poses_estimated=doc["poses"] == "estimated", body_offsets=p.get("body_offsets"))
 
 
 def _listing(folder: Path) -> set[str]:
@@ -501,6 +508,8 @@ def export_native(ds: Dataset, out_dir: str | os.PathLike, *, name: str | None =
     cameras = [ds.camera(s, i) for s, i in entries]
     recs = [ds._record(s, i) for s, i in entries]
     params = {**{key: np.stack([getattr(r, key) for r in recs]) for key in PARAM_KEYS}, **hand_columns(recs)}
+    if ds.body_offsets is not None:
+        params["body_offsets"] = ds.body_offsets
     frames_a, frames_b = itertools.tee(ds.frame(s, i) for s, i in entries)
     meta = NativeMeta(name=name or ds.name, splits=splits, fps=ds.fps if ds.fps is not None else 30.0,
                       gender=ds.gender, body=ds.body, poses_estimated=ds.poses_estimated,

@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 from rmavatar.avatar.model import Avatar
-from rmavatar.avatar.run import Checkpoint, RunFolder, body_signature, check_body, training_betas
-from rmavatar.body import PoseSequence, load_body_model, smooth_poses
+from rmavatar.avatar.run import Checkpoint, RunFolder, body_info, load_saved_body, training_betas
+from rmavatar.body import PoseSequence, smooth_poses
 from rmavatar.data import Dataset
 from rmavatar.render import rasterize
 from rmavatar.train.checkpoint import capture_rng, restore_rng, save_checkpoint
@@ -225,16 +225,14 @@ class Trainer:
 
 
 def load_body(cfg: TrainConfig, dataset, ckpt: Checkpoint | None, where: str):
-    """(body model, its signature for checkpoints): the checkpoint's, or the config's, else the dataset's
-    preset and gender, else Anny."""
-    spec = cfg.model.body or getattr(dataset, "body", None) or "anny"
-    gender = cfg.model.gender or getattr(dataset, "gender", None)
+    """(body model, what checkpoints keep of it): the checkpoint's, or the config's, else the dataset's
+    preset and gender, else Anny; with the dataset's body offsets (a captured shape) where the body is
+    the one the dataset names."""
     if ckpt is not None:
-        spec, gender = ckpt.body["spec"], ckpt.body.get("gender")
-    body = load_body_model(spec, gender=gender)
-    if ckpt is not None:
-        check_body(ckpt.body, body, where)
-    return body, {**body_signature(body), "gender": gender}
+        return load_saved_body(ckpt.body, where), ckpt.body
+    gender = cfg.model.gender or dataset.gender
+    body = dataset.body_model(cfg.model.body, gender)
+    return body, body_info(body, gender)
 
 
 class _Interrupt:
