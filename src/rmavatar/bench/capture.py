@@ -7,12 +7,14 @@ frame with its white background, 80 frames at 7.5 frames/s, captured with its tr
 made once in --work and reused.
 
 Reported, per frame decoded: wall-clock seconds of each stage of the capture (decode, landmarks, masks,
-fit, write; ``other``: loading the body and MediaPipe, the frames looked at first are in decode and
-landmarks) and the same as this process's CPU seconds (less sensitive to other load on the machine;
-ffmpeg's decoding runs in a process of its own and is not in them). Then: the share of frames with a
-person; the share of MediaPipe's 33 landmarks it saw (visibility > 0.5) in those frames; and the
-silhouette IoU of the fitted body, posed by the fitted poses and rasterised by the dataset's camera,
-against the masks written (at most 512 pixels on the longer side), mean over frames. For the
+fit, shape: the body's offsets and building the body with them, write; ``other``: loading the body and
+MediaPipe, the frames looked at first are in decode and landmarks) and the same as this process's CPU
+seconds (less sensitive to other load on the machine; ffmpeg's decoding runs in a process of its own
+and is not in them). Then: the share of frames with a person; the share of MediaPipe's 33 landmarks
+it saw (visibility > 0.5) in those frames; and the silhouette IoU of the fitted body, posed by the
+fitted poses and rasterised by the dataset's camera, against the masks written (at most 512 pixels on
+the longer side), mean over frames: with the fitted shape (smpl.npz's body offsets,
+``silhouette_iou``) and the preset's (``silhouette_iou_preset``; the same where no shape was fitted). ``shape``: the fitted offsets' mean and extremes (mm). For the
 synthetic clip also the fit against the truth: 2D joint error (% of the body's height in the image),
 3D joint error with the roots aligned (mm), and the IoU of the masks written with the true masks.
 """
@@ -63,9 +65,11 @@ def _truth_image(truth: Path, i: int) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def body_silhouettes(data: Path, side: int = IOU_SIDE) -> tuple[np.ndarray, np.ndarray]:
+def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> tuple[np.ndarray, np.ndarray]:
     """The fitted body's silhouettes and the masks of a captured dataset, both at most ``side`` pixels
-    on the longer side: (silhouettes [N,h,w] bool, masks [N,h,w] float 0..1), dataset frame order."""
+    on the longer side: (silhouettes [N,h,w] bool, masks [N,h,w] float 0..1), dataset frame order.
+    ``offsets``: True, the body with the dataset's offsets (smpl.npz ``body_offsets``, its fitted shape;
+    the preset without them); False, the preset; or offsets [V] to try."""
     import torch
     import yaml
 
@@ -81,7 +85,10 @@ def body_silhouettes(data: Path, side: int = IOU_SIDE) -> tuple[np.ndarray, np.n
     K = np.diag([tw / w, th / h, 1.0]) @ (K if K.ndim == 2 else K[0])
     with np.load(data / "smpl.npz") as z:
         params = {k: torch.as_tensor(z[k]) for k in ("betas", "global_orient", "body_pose", "transl")}
-    body = load_body_model(meta["body"])
+        stored = z["body_offsets"] if "body_offsets" in z.files else None
+    if offsets is True:
+        offsets = stored
+    body = load_body_model(meta["body"], offsets=None if offsets is False else offsets)
     n = params["global_orient"].shape[0]
     betas = None
     if int(getattr(body, "num_betas", 0)):
@@ -113,11 +120,13 @@ def assess(data: Path, truth: Path | None = None, truth_pad: int = 0) -> dict:
     ``truth_pad`` pixels padded on each side of its width in the clip) the fit's joint errors and the
     IoU of the masks with the true ones."""
     sil, masks = body_silhouettes(data)
+    preset, _ = body_silhouettes(data, offsets=False)
     with np.load(data / "capture.npz") as z:
         visible = float((z["visibility"] > 0.5).mean())
         source = z["source_index"]
     out = {"landmarks_visible": round(visible, 4),
-           "silhouette_iou": round(float(iou(sil, masks > 0.5).mean()), 4)}
+           "silhouette_iou": round(float(iou(sil, masks > 0.5).mean()), 4),
+           "silhouette_iou_preset": round(float(iou(preset, masks > 0.5).mean()), 4)}
     if truth is not None:
         out["truth"] = _against_truth(data, truth, source, truth_pad)
     return out
@@ -226,6 +235,7 @@ def run(opts) -> int:
             "frames_looked_at_first": len(s["looked_at"]),
             "seconds_per_frame": per,
             "cpu_seconds_per_frame": {k: round(v / n, 4) for k, v in s["cpu_seconds"].items()},
+            "shape": None if s["shape"] is None else {k: v for k, v in s["shape"].items() if k != "losses"},
             **assess(work / "captured", truth, pad),
             "machine": {**machine_info(), "load_average_before": before, "load_average_after": after},
         }

@@ -294,6 +294,19 @@ def mask_outline(masks: list[np.ndarray], scale: float, count: int = 400) -> tup
     return points, weights
 
 
+def mask_maps(masks: list[np.ndarray], width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the mask terms compare with, from boolean masks [h,w] (reduced from ``width``-pixel-wide
+    frames): ``outside`` [T,h,w] float32, each pixel's distance (full-image pixels) to the mask, and the
+    outline points [T,B,2] and weights [T,B] of :func:`mask_outline`."""
+    from scipy import ndimage
+
+    px = width / masks[0].shape[1]  # full-image pixels per mask pixel
+    # a mask too thin to survive the reduction leaves no foreground: every point then counts as inside
+    outside = np.stack([ndimage.distance_transform_edt(~m) * px if m.any() else np.zeros(m.shape)
+                        for m in masks]).astype(np.float32)  # fmt: skip
+    return (outside, *mask_outline(masks, px))
+
+
 def limit_term(body_pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
     """Sum over joints of the squared excess past the limits, mean over frames; body_pose [T,69]."""
     excess = torch.relu(body_pose - hi) + torch.relu(lo - body_pose)

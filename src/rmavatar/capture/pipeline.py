@@ -6,7 +6,8 @@ them is refused before the full pass; then every frame is decoded (subsampled, r
 finds the person's landmarks and mask in it at a working size (the mask then brought to the frame's
 size and snapped to its colour edges, :mod:`rmavatar.capture.matte`); frames without a person, or with
 a second one, are dropped and reported; each frame kept is written once, as the dataset's own files;
-the body is fitted to all frames at once (:mod:`rmavatar.capture.fit`); the dataset is completed with
+the body is fitted to all frames at once (:mod:`rmavatar.capture.fit`), then (Anny) its shape to the
+person's masks (:mod:`rmavatar.capture.shape`); the dataset is completed with
 a contact sheet of the fit. Any failure leaves nothing behind: frames wait in a temporary folder
 beside OUT, and OUT appears only when everything is written. The time of each stage is measured and
 returned (``rmavatar bench capture`` reports it).
@@ -26,6 +27,7 @@ import numpy as np
 
 from rmavatar.capture.fit import BodyFitConfig
 from rmavatar.capture.hands import HandFitConfig
+from rmavatar.capture.shape import ShapeFitConfig
 from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_folder
 
@@ -73,6 +75,9 @@ class CaptureConfig:
     fit: BodyFitConfig = field(default_factory=BodyFitConfig)  # the body fit's weights and schedule
     # the fingers' fit (None: not captured, the body's relaxed hands); bodies without fingers skip it
     hands: HandFitConfig | None = field(default_factory=HandFitConfig)
+    # the body's shape fitted to the masks as offsets (None: the preset's shape); only Anny bodies, SMPL
+    # bodies fit their betas with the poses
+    shape: ShapeFitConfig | None = field(default_factory=ShapeFitConfig)
 
     def check(self) -> None:
         if self.fov is not None and self.focal is not None:
@@ -91,6 +96,8 @@ class CaptureConfig:
             raise UserError(f"--size must be at least {MIN_SIZE} pixels, got {self.size}")
         if not 0 < self.test_fraction < 1:
             raise UserError(f"--test-fraction must lie between 0 and 1 (exclusive), got {self.test_fraction:g}")
+        if self.shape is not None:
+            self.shape.check()
 
 
 def intrinsics(width: int, height: int, fov: float | None = None, focal: float | None = None) -> np.ndarray:
@@ -126,7 +133,7 @@ def check_out(out: Path, source: Path, overwrite: bool = False) -> None:
     check_output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES)
 
 
-STAGES = ("decode", "landmarks", "masks", "fit", "write")
+STAGES = ("decode", "landmarks", "masks", "fit", "shape", "write")
 
 
 class _Stages:
@@ -409,20 +416,14 @@ def _splits(n: int, test_fraction: float, name, which: str) -> dict[str, list[in
 
 def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
     import torch
-    from scipy import ndimage
 
-    from rmavatar.capture.fit import Observations, mask_outline
+    from rmavatar.capture.fit import Observations, mask_maps
     from rmavatar.capture.landmarks import USED
 
     used = list(USED)
-    w_small = clip.small_masks[0].shape[1]
-    px = size[0] / w_small  # full-image pixels per small-mask pixel
-    # a mask too thin to survive the reduction leaves no foreground: every point then counts as inside
-    outside = np.stack([ndimage.distance_transform_edt(~m) * px if m.any() else np.zeros(m.shape)
-                        for m in clip.small_masks]).astype(np.float32)  # fmt: skip
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     index = np.asarray(clip.index)
-    outline, outline_weight = mask_outline(clip.small_masks, px)
+    outside, outline, outline_weight = mask_maps(clip.small_masks, size[0])
     return Observations(
         keypoints=t(np.stack(clip.keypoints)[:, used]), visibility=t(np.stack(clip.visibility)[:, used]),
         world=t(np.stack(clip.world)[:, used]), outside=t(outside), K=t(K), size=size,
@@ -432,9 +433,10 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
 
 
 def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: str, fx: float, losses: dict,
-                  hands=None):
+                  hands=None, shape=None):
     """The captured dataset's meta.yaml (a NativeMeta): body ``spec``, ``splits``, where each frame came
-    from, how many frames saw each hand (``hands``: the hand fit, None when the fingers were not captured)."""
+    from, how many frames saw each hand (``hands``: the hand fit, None when the fingers were not captured),
+    the shape fit's summary (``shape``: a ShapeFitResult, None when the shape was not fitted)."""
     from rmavatar.data import NativeMeta
 
     preset = spec.partition(":")[2] if spec.startswith("anny:") else None
@@ -452,7 +454,9 @@ def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: s
                "detection_size": list(clip.work_size),
                "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": fx},
                "fit": asdict(cfg.fit), "losses": losses, "hands": _hands_found(hands, clip),
-               "hand_fit": None if hands is None else asdict(cfg.hands)},
+               "hand_fit": None if hands is None else asdict(cfg.hands),
+               "shape": None if shape is None else shape.summary(),
+               "shape_fit": None if shape is None else asdict(cfg.shape)},
     )  # fmt: skip
 
 
@@ -493,13 +497,26 @@ def _hands_found(hands, clip: _Clip) -> dict | None:
             "landmark_seconds": round(clip.hand_seconds, 3), "fit_seconds": round(hands.seconds, 3)}
 
 
+def _fit_shape(body, params: dict, obs, cfg: ShapeFitConfig | None):
+    """The body's offsets fitted to the masks (:func:`rmavatar.capture.shape.fit_body_offsets`) and the
+    body built with them, or (None, ``body``): no shape fit asked for, or a body that fits betas."""
+    from rmavatar.body import load_body_model
+    from rmavatar.capture.shape import can_fit_shape, fit_body_offsets
+
+    if cfg is None or not can_fit_shape(body):
+        return None, body
+    shape = fit_body_offsets(body, params, obs, cfg)
+    return shape, load_body_model(body.spec, offsets=shape.offsets).to(body.faces.device)
+
+
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
     summary: frames kept and dropped, the frames looked at first, the size MediaPipe saw, seconds per
     stage (``seconds``: wall clock per STAGES item; ``cpu_seconds``: this process's CPU time), the
     whole call's ``total_seconds`` and ``seconds_per_frame`` (per frame decoded), the body, the camera,
-    the fit's final losses, ``hands``: how many frames saw each hand (None: the fingers not captured)."""
+    the fit's final losses, ``hands``: how many frames saw each hand (None: the fingers not captured),
+    ``shape``: the fitted offsets' mean and extremes (millimetres; None: the preset's shape)."""
     from tqdm import tqdm
 
     from rmavatar.body import load_body_model
@@ -548,8 +565,12 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
             with stages("fit"):
                 hands = _fit_hands(body, params, clip, K, source.fps, cfg.hands)
             params.update(body_pose=hands.body_pose, hand_pose=hands.hand_pose, hand_found=hands.found)
+        with stages("shape"):
+            shape, body = _fit_shape(body, params, obs, cfg.shape)
+        if shape is not None:
+            params["body_offsets"] = shape.offsets
         spec = getattr(body, "spec", cfg.body)
-        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses, hands)
+        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses, hands, shape)
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
         with stages("write"), \
                 output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
@@ -566,7 +587,8 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         "no_person": clip.no_person, "other_person": clip.other_person, "looked_at": clip.look.looked,
         "detection_size": list(clip.work_size), "body": spec,
         "camera": {"fx": float(K[0, 0]), "width": size[0], "height": size[1]},
-        "losses": result.losses, "hands": _hands_found(hands, clip), "seconds": dict(stages.wall),
+        "losses": result.losses, "hands": _hands_found(hands, clip),
+        "shape": None if shape is None else shape.summary(), "seconds": dict(stages.wall),
         "cpu_seconds": dict(stages.cpu),
         "total_seconds": total, "seconds_per_frame": total / max(clip.decoded, 1),
     }

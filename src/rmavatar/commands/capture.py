@@ -9,9 +9,9 @@ from rmavatar.utils.outputs import add_overwrite_argument
 DESCRIPTION = """\
 Turn a video of one person (or a folder of its frames) into a native dataset with estimated poses,
 offline: MediaPipe finds the person's mask and landmarks in every frame, the body (Anny by default)
-is fitted to all frames at once, and DATA gets the frames, masks, camera, SMPL-format poses, a
-train split and a held-out test tail, and contact_sheet.png: the fitted body drawn over frames of the
-clip. Look at it before training.
+is fitted to all frames at once (Anny's shape, too, to the person's outline), and DATA gets the
+frames, masks, camera, SMPL-format poses and body offsets, a train split and a held-out test tail, and
+contact_sheet.png: the fitted body drawn over frames of the clip. Look at it before training.
 
 Record: one person, the whole body in view, a static camera (on a tripod or propped up), turning
 slowly on the spot in an A-pose (arms lowered, away from the body), 20-60 seconds.
@@ -55,6 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and the mask's outline, seen from every side, weighs more against the "
                              "landmarks; this removes most of the pose error; wrong for walking, dancing or "
                              "gestures")
+    # (ShapeFitConfig's bounds, written out: importing it here would import torch for every command's --help)
+    parser.add_argument("--no-shape", action="store_true",
+                        help="keep the Anny body's preset shape: by default its surface is moved outwards along "
+                             "its normals (at most 10 cm, the head 3 cm, the hands not at all) to fit the person's "
+                             "outline in the masks, so that an avatar starts on the clothed person, not inside; "
+                             "SMPL bodies fit their betas either way")
     parser.add_argument("--iters", type=int, default=None, metavar="N",
                         help="fitting iterations (default 400, after 100 to start)")
     parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda")
@@ -76,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         fit.iters = args.iters
     cfg = CaptureConfig(body=args.body, fov=args.fov, focal=args.focal, fps=args.fps, size=args.size,
                         test_fraction=args.test_fraction, device=args.device, fit=fit)
+    if args.no_shape:
+        cfg.shape = None
     s = capture(args.input, args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     dropped = len(s["no_person"]) + len(s["other_person"])
     print(f"wrote {s['out']}: {s['frames']['train']} train + {s['frames']['test']} test frames of "
@@ -87,10 +95,14 @@ def run(args: argparse.Namespace) -> int:
     if hands is not None:
         print(f"hands: the left one found in {hands['left']} of {hands['frames']} frames, the right one in "
               f"{hands['right']} (finger poses in smpl.npz's hand_pose; the others held, then relaxed)")
+    shape = s.get("shape")
+    if shape is not None:
+        print(f"shape: the body's surface moved by {shape['mean_mm']:.0f} mm on average (from {shape['min_mm']:.0f} "
+              f"to {shape['max_mm']:.0f} mm) to fit the outline in {shape['frames']} frames (smpl.npz's body_offsets)")
     t = s["seconds"]
     w, h = s["detection_size"]
     print(f"{s['seconds_per_frame']:.2f} s per frame, {s['total_seconds']:.1f} s in all (decoding {t['decode']:.1f} s, "
           f"landmarks {t['landmarks']:.1f} s at {w}x{h}, masks {t['masks']:.1f} s, fitting {t['fit']:.1f} s, "
-          f"writing {t['write']:.1f} s)")
+          f"shape {t['shape']:.1f} s, writing {t['write']:.1f} s)")
     print(f"look at {s['out']}/contact_sheet.png, then: rmavatar train {s['out']} --out runs/NAME")
     return 0
