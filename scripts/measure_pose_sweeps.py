@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -38,9 +39,12 @@ def main(argv: list[str]) -> None:
     run = work / name / "run"
     cfg = variant_config("local_rectifier", data, 128, 500, 0, 20_000, 0, "cpu")
     cfg = apply_overrides(cfg, {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in rest)}, "settings")
-    started = time.perf_counter()
+    load_before, started = os.getloadavg()[0], time.perf_counter()
     train(cfg, run, progress=False)
-    out = {"settings": rest, "data": data, "train_seconds": time.perf_counter() - started}
+    # The training time is the whole training (both passes and every pose fit); the load averages show
+    # whether another process shared the CPU meanwhile, which makes times incomparable.
+    out = {"settings": rest, "data": data, "train_seconds": time.perf_counter() - started,
+           "load_average_before_after": [load_before, os.getloadavg()[0]]}
     errors = run / "pose_error.json"
     if errors.exists():
         e = json.loads(errors.read_text())
