@@ -1,8 +1,9 @@
 #!/bin/bash
 # A 30 s 1920x1080 clip (the synthetic turn played forward, back and forward at 7.5 frames/s, each frame
 # shown 4 times at 30 frames/s) -> rmavatar capture (defaults + --still, --fps 5) -> rmavatar train at the
-# demo's size and budget (256 px, 1000 iterations), without pose refinement; then eval of the test tail
-# (docs/capture.md, "From a clip to an avatar"). Times in WORK/times.log.
+# demo's size and budget (256 px, 1000 iterations) at the default settings (captured poses are estimated,
+# so they are refined; TRAIN_ARGS=--no-refine-poses: without), then eval of the test tail (docs/capture.md,
+# "From a clip to an avatar"). Times in WORK/times.log.
 set -u
 W=$(realpath -m "${1:?usage: scripts/measure_time_to_avatar.sh WORK}"); mkdir -p "$W"
 cd "$(dirname "$0")/.."
@@ -38,7 +39,7 @@ T0=$(date +%s)
 $PY -m rmavatar capture $W/clip30.mp4 --out $W/data --still --fps 5 --fov $FOV --quiet > $W/capture.log 2>&1
 log "capture rc=$? in $(( $(date +%s) - T0 )) s"; uptime >> $W/times.log
 T1=$(date +%s)
-$PY -m rmavatar train $W/data --out $W/run --size 256 --iters 1000 --no-refine-poses > $W/train.log 2>&1
+$PY -m rmavatar train $W/data --out $W/run --size 256 --iters 1000 ${TRAIN_ARGS:-} > $W/train.log 2>&1
 log "train rc=$? in $(( $(date +%s) - T1 )) s"; uptime >> $W/times.log
 T2=$(date +%s)
 $PY -m rmavatar eval $W/run --split test --json $W/eval_test.json --quiet > $W/eval.log 2>&1
