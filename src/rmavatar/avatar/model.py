@@ -12,6 +12,7 @@ a class (``rectifier.PaperRectifier``, ``rectifier.LocalRectifier``) that the av
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ from rmavatar.avatar.geometry import FaceTable, triangle_frames
 from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
 from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
+from rmavatar.render.kernels import ALPHA_MIN
 from rmavatar.utils import UserError
 from rmavatar.utils.config import check_fields
 from rmavatar.utils.device import host_scalar, set_host_scalar
@@ -591,3 +593,36 @@ class Avatar(nn.Module):
         if "means" in state_dict and state_dict["means"].shape[0] != self.num_gaussians:
             self.resize_(state_dict["means"].shape[0])
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+
+@torch.no_grad()
+def drawable_copy(avatar: Avatar) -> Avatar:
+    """A copy of ``avatar`` holding only the Gaussians a rasterizer can draw, and only the binding faces
+    they sit on, for work that holds the avatar still and poses it many times (test-time and training
+    pose fits).
+
+    A Gaussian's alpha at a pixel is at most its opacity, and every backend skips alphas under
+    ``ALPHA_MIN`` (1/255, as 3DGS and gsplat): one with a lower opacity adds nothing to any image or
+    gradient. Density control prunes only below its own threshold (0.005) and an opacity reset leaves
+    every opacity at most 0.01, so many Gaussians are such: about a third of those of the trained avatars
+    measured (docs/evaluate.md, "Test-time pose fitting").
+    Every kept Gaussian is posed, rectified and coloured as in ``avatar`` (each row on its own), so the
+    copy renders the same images; its parameters are detached copies, without capacity buffers."""
+    keep = torch.sigmoid(avatar.opacity_logits[: avatar.num_gaussians]) >= ALPHA_MIN
+    keep = torch.cat((keep, keep.new_zeros(avatar.capacity - avatar.num_gaussians)))
+    if avatar.live is not None:
+        keep &= avatar.live > 0
+    used = torch.unique(avatar._face_slot()[keep])
+    out = copy.copy(avatar)  # a shallow copy: the shared buffers and the rectifier stay shared
+    out._parameters, out._buffers = dict(avatar._parameters), dict(avatar._buffers)
+    for name in GAUSSIAN_PARAMS:
+        out._parameters[name] = nn.Parameter(getattr(avatar, name)[keep].detach(), requires_grad=False)
+    out._buffers["face_ids"] = avatar.face_ids[keep]
+    out._buffers["binding_faces"] = avatar.binding_faces[used]
+    for name in ("rest_frames", "rest_scales", "rest_centroids"):
+        out._buffers[name] = getattr(avatar, name)[used]
+    out._buffers["live"] = out._buffers["row_weights"] = None
+    out.live_rows = None
+    for cache in ("_slot_cache", "_local_cache"):  # the rows' gathers (Avatar._face_slot), made anew
+        out.__dict__.pop(cache, None)
+    return out

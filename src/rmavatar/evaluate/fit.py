@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from rmavatar.avatar.frame import render_frame
+from rmavatar.avatar.model import drawable_copy
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
 from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
 from rmavatar.render.camera import CameraTensors
@@ -109,12 +110,15 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
         p.requires_grad_(False)
     was_training = avatar.training
     avatar.eval()
+    # the Gaussians too faint to draw add nothing to the images the fit compares: posed without them,
+    # a fitting step costs a third or so less (docs/evaluate.md)
+    visible = drawable_copy(avatar)
     out = []
     try:
         bar = tqdm(total=n, desc="fit poses", unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
         for start in range(0, n, cfg.batch):
             idx = list(range(start, min(n, start + cfg.batch)))
-            out.append(_fit_batch(avatar, body, poses.select(slice(idx[0], idx[-1] + 1)).to(dev),
+            out.append(_fit_batch(visible, body, poses.select(slice(idx[0], idx[-1] + 1)).to(dev),
                                   None if betas is None else torch.as_tensor(betas[idx[0]: idx[-1] + 1]).float().to(dev),
                                   [frames[i] for i in idx], background, cfg))  # fmt: skip
             bar.update(len(idx))
