@@ -671,3 +671,73 @@ def test_encoding_window_is_read_from_the_alpha_buffer_on_the_device():
         r.freq_alpha.fill_(alpha)
         want = torch.tensor(window_values(6, alpha), dtype=torch.float32).repeat_interleave(3).repeat(2)
         torch.testing.assert_close(r._band_weights(x), want, rtol=0, atol=1e-6)
+
+
+def _rotated_meshes(gen, dtype):
+    """A jittered sphere turned by rotations that pick every row of Shepperd's K, with a degenerate
+    triangle (two corners equal) and a zero-area one (three corners on a line)."""
+    v, f = sphere()
+    q = torch.randn(4, 4, generator=gen, dtype=torch.float64)
+    q[0, 0], q[1, 1:] = 1e-9, 0.0  # near 180 degrees; the identity's direction
+    meshes = []
+    for R in quat_to_rotmat(q):
+        x = v.double() @ R.T + 0.01 * torch.randn(v.shape, generator=gen, dtype=torch.float64)
+        x[f[0, 1]] = x[f[0, 0]]
+        x[f[1, 2]] = 0.5 * (x[f[1, 0]] + x[f[1, 1]])
+        meshes.append(x.to(dtype))
+    return meshes, f
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_cpu_face_table_kernels_match_the_torch_formulas(dtype):
+    """The numba face table (one mesh on the CPU with gradients: pose fits and refining steps) against
+    FaceTable.rows(*triangle_frames(...)), values and gradients."""
+    from rmavatar.avatar.geometry import FaceTable, face_table
+
+    gen = torch.Generator().manual_seed(21)
+    meshes, f = _rotated_meshes(gen, dtype)
+    rows = set()
+    tol = 1e-11 if dtype == torch.float64 else 2e-5
+    for x in meshes:
+        x = x.requires_grad_(True)
+        kernel = face_table(x, f)
+        assert kernel.grad_fn is not None and "FaceTableCPU" in type(kernel.grad_fn).__name__
+        plain = FaceTable.rows(*triangle_frames(x, f))
+        # the degenerate faces' frames (those two and their neighbours across the zero edge) are
+        # rounding noise: finite, and differently so in each
+        tri = x.detach()[f]
+        area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1).norm(dim=-1)
+        degenerate = area < 1e-6
+        assert 2 <= int(degenerate.sum()) <= 4
+        torch.testing.assert_close(kernel[~degenerate], plain[~degenerate], rtol=tol, atol=tol)
+        g = torch.randn(plain.shape, generator=gen, dtype=dtype)
+        (gk,) = torch.autograd.grad((kernel * g).sum(), x, retain_graph=True)
+        assert torch.isfinite(kernel).all() and torch.isfinite(gk).all()
+        g[degenerate] = 0.0
+        (gk,) = torch.autograd.grad((kernel * g).sum(), x)
+        (gp,) = torch.autograd.grad((plain * g).sum(), x)
+        torch.testing.assert_close(gk, gp, rtol=tol, atol=tol * float(gp.abs().max()))
+        with torch.no_grad():
+            R = plain[:, FaceTable.R].reshape(-1, 3, 3)
+            K = torch.addmm(torch.tensor(_SHEPPERD_DIAG_ONES, dtype=dtype), R.reshape(-1, 9),
+                            torch.tensor(_shepperd_diag(), dtype=dtype))
+            rows |= set(K.argmax(-1).tolist())
+    assert rows == {0, 1, 2, 3}  # every row of K was picked somewhere
+    # without gradients, batched, or on another device: the torch formulas themselves
+    x = meshes[0].detach()
+    assert torch.equal(face_table(x, f), FaceTable.rows(*triangle_frames(x, f)))
+    batch = torch.stack((x, x)).requires_grad_(True)
+    assert "FaceTableCPU" not in type(face_table(batch, f).grad_fn).__name__
+
+
+_SHEPPERD_DIAG_ONES = (1.0, 1.0, 1.0, 1.0)
+
+
+def _shepperd_diag():
+    """[9,4]: R flattened @ this + 1 = K's diagonal (4 w^2, 4 x^2, 4 y^2, 4 z^2)."""
+    signs = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
+    table = [[0.0] * 4 for _ in range(9)]
+    for k, s in enumerate(signs):
+        for d in range(3):
+            table[4 * d][k] = float(s[d])
+    return table

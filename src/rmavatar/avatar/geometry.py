@@ -6,6 +6,7 @@ All functions are batched over leading dimensions and differentiable.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from rmavatar.render.project import UNIT_EPS, quat_to_rotmat, unit_backward, unit_forward  # quat_to_rotmat: API
@@ -191,3 +192,49 @@ class FaceTable:
         R9 = R.flatten(-2)
         return torch.cat((R9, w.unsqueeze(-1) * R9, M, w.unsqueeze(-1),
                           quat_left_matrix(rotmat_to_quat(R)).flatten(-2)), dim=-1)
+
+
+class _FaceTableCPU(torch.autograd.Function):
+    """The face table of one mesh on the CPU by the numba kernels of :mod:`rmavatar.avatar.face_kernels`
+    (the same formulas as ``FaceTable.rows(*triangle_frames(...))``, to rounding)."""
+
+    @staticmethod
+    def forward(ctx, vertices, faces):
+        from rmavatar.avatar.face_kernels import face_table_forward
+
+        v, f = _cpu_arrays(vertices, faces)
+        out = np.empty((f.shape[0], FaceTable.WIDTH), v.dtype)
+        face_table_forward(v, f, _TABLES["shepperd"], _TABLES["left"], _EPS, out, np.empty((f.shape[0], 13)))
+        ctx.save_for_backward(vertices, faces)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        from rmavatar.avatar.face_kernels import face_table_backward
+
+        vertices, faces = ctx.saved_tensors
+        v, f = _cpu_arrays(vertices, faces)
+        corners = np.empty((f.shape[0], 3, 3), v.dtype)
+        face_table_backward(v, f, _TABLES["shepperd"], _TABLES["left"], _EPS,
+                            g.detach().to(vertices.dtype).contiguous().numpy(), corners, np.empty((f.shape[0], 22)))
+        g_vertices = torch.zeros_like(vertices)
+        return g_vertices.index_add_(0, faces.reshape(-1), torch.from_numpy(corners).reshape(-1, 3)), None
+
+
+_TABLES = {"shepperd": np.asarray(_SHEPPERD, dtype=np.float64), "left": np.asarray(_LEFT, dtype=np.float64)}
+
+
+def _cpu_arrays(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    return vertices.detach().contiguous().numpy(), faces.to(torch.int64).contiguous().numpy()
+
+
+def face_table(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """The face table [...,F,FaceTable.WIDTH] of faces [F,3] of meshes vertices [V,3] or [B,V,3]:
+    ``FaceTable.rows(*triangle_frames(vertices, faces))``. One mesh on the CPU whose gradient is wanted
+    (pose fits, pose-refining steps) goes through numba kernels, several times faster forward and backward
+    there (docs/model.md, "Measured choices"); every other case through those torch formulas."""
+    if (vertices.dim() == 2 and vertices.device.type == "cpu" and vertices.requires_grad and torch.is_grad_enabled()
+            and vertices.dtype in (torch.float32, torch.float64)):
+        return _FaceTableCPU.apply(vertices, faces)
+    return FaceTable.rows(*triangle_frames(vertices, faces))

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from rmavatar.avatar.compose import compose_gaussians
-from rmavatar.avatar.geometry import FaceTable, triangle_frames
+from rmavatar.avatar.geometry import FaceTable, face_table, triangle_frames
 from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
 from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
@@ -451,8 +451,7 @@ class Avatar(nn.Module):
                 f"got {tuple(vertices.shape)}"
             )
         # Frames for the faces in use only (binding faces; far fewer than N after densification).
-        R, w, M = triangle_frames(vertices.to(self.means.dtype), self.faces[self.binding_faces])
-        return FaceTable.rows(R, w, M)
+        return face_table(vertices.to(self.means.dtype), self.faces[self.binding_faces])
 
     def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
         """Every Gaussian's row g [N,FACE_TABLE] of the posed mesh's face table (``compose_gaussians`` reads it)
