@@ -24,6 +24,17 @@ def _cross(a0, a1, a2, b0, b1, b2):
 
 
 @numba.njit(cache=True, nogil=True)
+def _cross_grads(a, b, g):
+    """The gradients of a x b to a and b, for its gradient g: (b x g, g x a); 3-tuples."""
+    return _cross(b[0], b[1], b[2], g[0], g[1], g[2]), _cross(g[0], g[1], g[2], a[0], a[1], a[2])
+
+
+@numba.njit(cache=True, nogil=True)
+def _add(a, b):
+    return a[0] + b[0], a[1] + b[1], a[2] + b[2]
+
+
+@numba.njit(cache=True, nogil=True)
 def _frame(vertices, faces, f, eps):
     """Face f's corners' edges and frame: e1, e2, a0, a1, a2 (3-tuples), |e1|, |a0 x e2|, d = a2 . e2."""
     i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -115,7 +126,7 @@ def face_table_backward(vertices, faces, shepperd, left, eps, g, g_corners, work
         qnc = max(qn, eps)
         sign = -1.0 if row[0] < 0 else 1.0
         dot = 0.0
-        for k in range(4):  # gq (kept in row's place after dot), the gradient of unit(row)
+        for k in range(4):  # gq = sign left gL, the gradient of unit(row): first its dot with unit(row)
             value = 0.0
             for j in range(16):
                 value += g[f, 22 + j] * left[k, j]
@@ -128,50 +139,27 @@ def face_table_backward(vertices, faces, shepperd, left, eps, g, g_corners, work
             g_row = (sign * value - row[k] / qnc * radial) / qnc
             for m in range(9):
                 gR[m] += g_row * shepperd[1 + m, 4 * best + k]
-        ga00, ga01, ga02 = gR[0], gR[3], gR[6]
-        ga10, ga11, ga12 = gR[1], gR[4], gR[7]
-        ga20, ga21, ga22 = gR[2], gR[5], gR[8]
+        ga0, ga1, ga2 = (gR[0], gR[3], gR[6]), (gR[1], gR[4], gR[7]), (gR[2], gR[5], gR[8])
         # w = (|e1| + |a2 . e2|) / 2
         g_d = 0.5 * gw * (1.0 if d > 0 else (-1.0 if d < 0 else 0.0))
-        ge20, ge21, ge22 = g_d * a2[0], g_d * a2[1], g_d * a2[2]
-        ga20 += g_d * e2[0]
-        ga21 += g_d * e2[1]
-        ga22 += g_d * e2[2]
+        ge2 = (g_d * a2[0], g_d * a2[1], g_d * a2[2])
+        ga2 = (ga2[0] + g_d * e2[0], ga2[1] + g_d * e2[1], ga2[2] + g_d * e2[2])
         # a2 = a0 x a1
-        t0, t1, t2 = _cross(a1[0], a1[1], a1[2], ga20, ga21, ga22)
-        u0, u1, u2 = _cross(ga20, ga21, ga22, a0[0], a0[1], a0[2])
-        ga00 += t0
-        ga01 += t1
-        ga02 += t2
-        ga10 += u0
-        ga11 += u1
-        ga12 += u2
+        ta, tb = _cross_grads(a0, a1, ga2)
+        ga0, ga1 = _add(ga0, ta), _add(ga1, tb)
         # a1 = unit(c), c = a0 x e2
         ncc = max(nc, eps)
-        dot = (a1[0] * ga10 + a1[1] * ga11 + a1[2] * ga12) if nc > eps else 0.0
-        gc0, gc1, gc2 = (ga10 - a1[0] * dot) / ncc, (ga11 - a1[1] * dot) / ncc, (ga12 - a1[2] * dot) / ncc
-        t0, t1, t2 = _cross(e2[0], e2[1], e2[2], gc0, gc1, gc2)
-        u0, u1, u2 = _cross(gc0, gc1, gc2, a0[0], a0[1], a0[2])
-        ga00 += t0
-        ga01 += t1
-        ga02 += t2
-        ge20 += u0
-        ge21 += u1
-        ge22 += u2
+        dot = (a1[0] * ga1[0] + a1[1] * ga1[1] + a1[2] * ga1[2]) if nc > eps else 0.0
+        gc = ((ga1[0] - a1[0] * dot) / ncc, (ga1[1] - a1[1] * dot) / ncc, (ga1[2] - a1[2] * dot) / ncc)
+        ta, tb = _cross_grads(a0, e2, gc)
+        ga0, ge2 = _add(ga0, ta), _add(ge2, tb)
         # a0 = unit(e1), and |e1| itself in w
         n1c = max(n1, eps)
-        dot = (a0[0] * ga00 + a0[1] * ga01 + a0[2] * ga02) if n1 > eps else 0.0
+        dot = (a0[0] * ga0[0] + a0[1] * ga0[1] + a0[2] * ga0[2]) if n1 > eps else 0.0
         norm_grad = 0.5 * gw / n1 if n1 > 0 else 0.0
-        ge10 = (ga00 - a0[0] * dot) / n1c + norm_grad * e1[0]
-        ge11 = (ga01 - a0[1] * dot) / n1c + norm_grad * e1[1]
-        ge12 = (ga02 - a0[2] * dot) / n1c + norm_grad * e1[2]
-        gm0, gm1, gm2 = g[f, 18] / 3.0, g[f, 19] / 3.0, g[f, 20] / 3.0
-        g_corners[f, 0, 0] = gm0 - ge10 - ge20
-        g_corners[f, 0, 1] = gm1 - ge11 - ge21
-        g_corners[f, 0, 2] = gm2 - ge12 - ge22
-        g_corners[f, 1, 0] = gm0 + ge10
-        g_corners[f, 1, 1] = gm1 + ge11
-        g_corners[f, 1, 2] = gm2 + ge12
-        g_corners[f, 2, 0] = gm0 + ge20
-        g_corners[f, 2, 1] = gm1 + ge21
-        g_corners[f, 2, 2] = gm2 + ge22
+        for i in range(3):
+            ge1 = (ga0[i] - a0[i] * dot) / n1c + norm_grad * e1[i]
+            gm = g[f, 18 + i] / 3.0
+            g_corners[f, 0, i] = gm - ge1 - ge2[i]
+            g_corners[f, 1, i] = gm + ge1
+            g_corners[f, 2, i] = gm + ge2[i]
