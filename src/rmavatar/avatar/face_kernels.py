@@ -5,8 +5,9 @@ As torch operations that is some 25 passes over [F,3..16] tensors forward and as
 too small to use the CPU well; here each face is one iteration with everything in registers. The
 formulas are those of :func:`rmavatar.avatar.geometry.triangle_frames` and :meth:`FaceTable.rows`
 (the torch path, which every other device runs and the tests compare these with), the backward written
-out as in docs/model.md. Gradients of the corners are written per face and summed onto the vertices
-by the caller (a scatter that would race across threads here).
+out step by step in reverse. Gradients of the corners are written per face and summed onto the vertices
+by the caller (a scatter that would race across threads here); docs/model.md ("Measured choices") has
+what they save.
 """
 
 from __future__ import annotations

@@ -111,7 +111,7 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
     was_training = avatar.training
     avatar.eval()
     # the Gaussians too faint to draw add nothing to the images the fit compares: posed without them,
-    # a fitting step costs a third or so less (docs/evaluate.md)
+    # a fitting step costs a fifth to a quarter less (docs/evaluate.md)
     visible = drawable_copy(avatar)
     out = []
     try:
