@@ -1,6 +1,6 @@
 """The posed mesh's face table on the CPU as numba kernels, forward and backward, one pass over the faces.
 
-Pose fits and pose-refining training steps build the face table of a mesh with gradients on every step.
+Pose fits build the face table of a mesh with gradients on every step.
 As torch operations that is some 25 passes over [F,3..16] tensors forward and as many backward, each
 too small to use the CPU well; here each face is one iteration with everything in registers. The
 formulas are those of :func:`rmavatar.avatar.geometry.triangle_frames` and :meth:`FaceTable.rows`

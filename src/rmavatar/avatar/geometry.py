@@ -232,8 +232,9 @@ def _cpu_arrays(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[np.ndarray
 def face_table(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """The face table [...,F,FaceTable.WIDTH] of faces [F,3] of meshes vertices [V,3] or [B,V,3]:
     ``FaceTable.rows(*triangle_frames(vertices, faces))``. One mesh on the CPU whose gradient is wanted
-    (pose fits, pose-refining steps) goes through numba kernels, about twice as fast forward and backward
-    there (docs/model.md, "Measured choices"); every other case through those torch formulas."""
+    (pose fits: ``Avatar.face_table(..., kernels=True)``) goes through numba kernels, about twice as fast
+    forward and backward there (docs/model.md, "Measured choices"); every other case through those torch
+    formulas."""
     if (vertices.dim() == 2 and vertices.device.type == "cpu" and vertices.requires_grad and torch.is_grad_enabled()
             and vertices.dtype in (torch.float32, torch.float64)):
         return _FaceTableCPU.apply(vertices, faces)

@@ -437,21 +437,25 @@ class Avatar(nn.Module):
             cached = self._local_cache = (key, values)
         return cached[1]
 
-    def face_table(self, vertices: torch.Tensor) -> torch.Tensor:
+    def face_table(self, vertices: torch.Tensor, kernels: bool = False) -> torch.Tensor:
         """The frames of the binding faces of posed meshes ``vertices`` [V,3] or [B,V,3]:
         [Fb, FACE_TABLE] or [B, Fb, FACE_TABLE], per face the columns of :class:`FaceTable`: R, w R, M, w
         and L(quat(R)) (the matrix of r -> quat(R) (x) r), so that mu* and r* are one batched matrix
         product each.
 
         It depends on the mesh only, not on the Gaussians: training, which poses the same frames again
-        and again, computes it once per frame and passes it to :meth:`forward` as ``table``."""
+        and again, computes it once per frame and passes it to :meth:`forward` as ``table``.
+        ``kernels``: one mesh on the CPU with gradients goes through the numba kernels of
+        :func:`rmavatar.avatar.geometry.face_table` (pose fits ask for them; training does not, so that
+        a run resumes to the same bits as the version that trained it)."""
         if vertices.dim() not in (2, 3) or vertices.shape[-2:] != (self.num_vertices, 3):
             raise ValueError(
                 f"vertices must be [{self.num_vertices},3] or [B,{self.num_vertices},3] (this avatar's body), "
                 f"got {tuple(vertices.shape)}"
             )
         # Frames for the faces in use only (binding faces; far fewer than N after densification).
-        return face_table(vertices.to(self.means.dtype), self.faces[self.binding_faces])
+        vertices, faces = vertices.to(self.means.dtype), self.faces[self.binding_faces]
+        return face_table(vertices, faces) if kernels else FaceTable.rows(*triangle_frames(vertices, faces))
 
     def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
         """Every Gaussian's row g [N,FACE_TABLE] of the posed mesh's face table (``compose_gaussians`` reads it)

@@ -162,8 +162,9 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
             if refresh and avatar.rectifier is not None:
                 with torch.no_grad():
                     rectified[k] = avatar.rectify(vertices[k], pose)
-            drawn = render_frame(avatar, vertices[k], pose, cams[k], background,
-                                 rectified=rectified[k], colors=None if refresh else colors[k], hold_colors=True)
+            table = avatar.face_table(vertices[k], kernels=True)  # the CPU kernels, where they apply
+            drawn = render_frame(avatar, None, pose, cams[k], background, table=table, rectified=rectified[k],
+                                 colors=None if refresh else colors[k], hold_colors=True)
             colors[k] = drawn.colors
             loss = loss + (_pooled(drawn.image, pool) - pooled["targets"][k]).abs().mean() \
                 + cfg.silhouette * (_pooled(drawn.alpha, pool) - pooled["masks"][k]).abs().mean()
