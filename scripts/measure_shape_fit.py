@@ -74,7 +74,7 @@ def parse(text: str) -> dict:
 
 
 def main() -> None:
-    from rmavatar.bench.capture import body_silhouettes, iou
+    from rmavatar.bench.capture import body_silhouettes, captured_masks, iou
     from rmavatar.body import load_body_model
     from rmavatar.capture.shape import ShapeFitConfig, fit_body_offsets
 
@@ -86,8 +86,7 @@ def main() -> None:
     args = ap.parse_args()
     obs, params, spec = mask_observations(args.data)
     body = load_body_model(spec)
-    preset, masks = body_silhouettes(args.data, offsets=False)
-    masks = masks > 0.5
+    preset, masks = body_silhouettes(args.data, offsets=False), captured_masks(args.data) > 0.5
     before = iou(preset, masks)
     truth = true_masks(args.data, args.truth, masks.shape[1:]) if args.truth else None
     true_iou = (lambda s: round(float(iou(s[:, :, truth[1]:truth[2]], truth[0]).mean()), 4)) if truth else None
@@ -98,7 +97,7 @@ def main() -> None:
     for text in args.set or [""]:
         overrides = parse(text)
         r = fit_body_offsets(body, params, obs, ShapeFitConfig(**overrides))
-        fitted, _ = body_silhouettes(args.data, offsets=r.offsets)
+        fitted = body_silhouettes(args.data, offsets=r.offsets)
         after = iou(fitted, masks)
         unseen = np.setdiff1d(np.arange(len(after)), r.frames)
         run = {"set": overrides, "iou": round(float(after.mean()), 4),

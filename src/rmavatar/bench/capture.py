@@ -65,22 +65,41 @@ def _truth_image(truth: Path, i: int) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> tuple[np.ndarray, np.ndarray]:
-    """The fitted body's silhouettes and the masks of a captured dataset, both at most ``side`` pixels
-    on the longer side: (silhouettes [N,h,w] bool, masks [N,h,w] float 0..1), dataset frame order.
-    ``offsets``: True, the body with the dataset's offsets (smpl.npz ``body_offsets``, its fitted shape;
-    the preset without them); False, the preset; or offsets [V] to try."""
-    import torch
+def _iou_size(data: Path, side: int) -> tuple[dict, int, int]:
+    """A captured dataset's meta.yaml and its image size scaled to at most ``side`` pixels on the longer
+    side (width, height)."""
     import yaml
 
-    from rmavatar.body import load_body_model
-    from rmavatar.capture.sheet import body_silhouette
     from rmavatar.data.dataset import target_size
-    from rmavatar.data.io import read_mask, resample
 
     meta = yaml.safe_load((data / "meta.yaml").read_text())
     w, h = int(meta["width"]), int(meta["height"])
-    tw, th = target_size(w, h, min(side, max(w, h)))
+    return (meta, *target_size(w, h, min(side, max(w, h))))
+
+
+def captured_masks(data: Path, side: int = IOU_SIDE) -> np.ndarray:
+    """The masks of a captured dataset [N,h,w] float 0..1, at most ``side`` pixels on the longer side, in
+    dataset frame order (those :func:`body_silhouettes` is compared with)."""
+    from rmavatar.data.io import read_mask, resample
+
+    _, tw, th = _iou_size(data, side)
+    with np.load(data / "smpl.npz") as z:
+        n = z["global_orient"].shape[0]
+    return np.stack([resample(read_mask(data / "masks" / f"{i:05d}.png"), tw, th) for i in range(n)])
+
+
+def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> np.ndarray:
+    """The fitted body's silhouettes [N,h,w] bool of a captured dataset, at most ``side`` pixels on the
+    longer side, dataset frame order. ``offsets``: True, the body with the dataset's offsets (smpl.npz
+    ``body_offsets``, its fitted shape; the preset without them); False, the preset; or offsets [V] to
+    try."""
+    import torch
+
+    from rmavatar.body import load_body_model
+    from rmavatar.capture.sheet import body_silhouette
+
+    meta, tw, th = _iou_size(data, side)
+    w, h = int(meta["width"]), int(meta["height"])
     K = np.load(data / "cameras.npz")["K"].astype(np.float64)
     K = np.diag([tw / w, th / h, 1.0]) @ (K if K.ndim == 2 else K[0])
     with np.load(data / "smpl.npz") as z:
@@ -94,7 +113,7 @@ def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> tuple[np
     if int(getattr(body, "num_betas", 0)):
         betas = params["betas"].reshape(-1, 10)[:, : body.num_betas].expand(n, -1)
     faces = body.faces.numpy()
-    sil, masks = [], []
+    sil = []
     with torch.no_grad():
         for start in range(0, n, 32):
             sl = slice(start, start + 32)
@@ -102,9 +121,7 @@ def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> tuple[np
                        params["transl"][sl])
             for v in out.vertices.numpy().astype(np.float64):
                 sil.append(body_silhouette(v, faces, K, tw, th))
-    for i in range(n):
-        masks.append(resample(read_mask(data / "masks" / f"{i:05d}.png"), tw, th))
-    return np.stack(sil), np.stack(masks)
+    return np.stack(sil)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -119,8 +136,8 @@ def assess(data: Path, truth: Path | None = None, truth_pad: int = 0) -> dict:
     of the fitted body with the masks; with ``truth`` (the synthetic dataset the clip was rendered from,
     ``truth_pad`` pixels padded on each side of its width in the clip) the fit's joint errors and the
     IoU of the masks with the true ones."""
-    sil, masks = body_silhouettes(data)
-    preset, _ = body_silhouettes(data, offsets=False)
+    masks = captured_masks(data)
+    sil, preset = body_silhouettes(data), body_silhouettes(data, offsets=False)
     with np.load(data / "capture.npz") as z:
         visible = float((z["visibility"] > 0.5).mean())
         source = z["source_index"]
