@@ -112,9 +112,9 @@ def face_table_forward(vertices, faces, shepperd, left, eps, out, work):
 @numba.njit(parallel=True, cache=True, nogil=True)
 def face_table_backward(vertices, faces, shepperd, left, eps, g, g_corners, work):
     """g_corners [F,3,3] = the gradient of each face's three corners from the table's gradient g [F,38];
-    work [F,22] float64 scratch."""
+    work [F,26] float64 scratch."""
     for f in numba.prange(faces.shape[0]):
-        R, row, gR = work[f, :9], work[f, 9:13], work[f, 13:22]
+        R, row, gR, gq = work[f, :9], work[f, 9:13], work[f, 13:22], work[f, 22:26]
         e1, e2, a0, a1, a2, n1, nc, d = _frame_rows(vertices, faces, f, eps, R)
         w = 0.5 * (n1 + abs(d))
         gw = g[f, 21]
@@ -127,17 +127,15 @@ def face_table_backward(vertices, faces, shepperd, left, eps, g, g_corners, work
         qnc = max(qn, eps)
         sign = -1.0 if row[0] < 0 else 1.0
         dot = 0.0
-        for k in range(4):  # gq = sign left gL, the gradient of unit(row): first its dot with unit(row)
+        for k in range(4):  # gq = sign left gL, the gradient of unit(row), and its dot with unit(row)
             value = 0.0
             for j in range(16):
                 value += g[f, 22 + j] * left[k, j]
-            dot += row[k] / qnc * sign * value
+            gq[k] = sign * value
+            dot += row[k] / qnc * gq[k]
         radial = dot if qn > eps else 0.0
         for k in range(4):
-            value = 0.0
-            for j in range(16):
-                value += g[f, 22 + j] * left[k, j]
-            g_row = (sign * value - row[k] / qnc * radial) / qnc
+            g_row = (gq[k] - row[k] / qnc * radial) / qnc
             for m in range(9):
                 gR[m] += g_row * shepperd[1 + m, 4 * best + k]
         ga0, ga1, ga2 = (gR[0], gR[3], gR[6]), (gR[1], gR[4], gR[7]), (gR[2], gR[5], gR[8])

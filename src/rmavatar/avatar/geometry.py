@@ -217,7 +217,7 @@ class _FaceTableCPU(torch.autograd.Function):
         v, f = _cpu_arrays(vertices, faces)
         corners = np.empty((f.shape[0], 3, 3), v.dtype)
         face_table_backward(v, f, _TABLES["shepperd"], _TABLES["left"], _EPS,
-                            g.detach().to(vertices.dtype).contiguous().numpy(), corners, np.empty((f.shape[0], 22)))
+                            g.detach().to(vertices.dtype).contiguous().numpy(), corners, np.empty((f.shape[0], 26)))
         g_vertices = torch.zeros_like(vertices)
         return g_vertices.index_add_(0, faces.reshape(-1), torch.from_numpy(corners).reshape(-1, 3)), None
 

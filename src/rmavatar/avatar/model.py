@@ -385,6 +385,12 @@ class Avatar(nn.Module):
         """Rows of the per-Gaussian tensors (``num_gaussians`` of them live)."""
         return self.means.shape[0]
 
+    def opacities(self) -> torch.Tensor:
+        """Every row's opacity [C] as drawn: the sigmoid of its logit, 0 for the unused rows of capacity
+        buffers (culled, and no gradient reaches them)."""
+        opacities = torch.sigmoid(self.opacity_logits)
+        return opacities if self.live is None else opacities * self.live
+
     def set_frequency_alpha(self, alpha: float) -> None:
         """Coarse-to-fine encoding window position (0..num_freqs); see rectifier.window_alpha."""
         if self.rectifier is not None:
@@ -561,10 +567,7 @@ class Avatar(nn.Module):
         # all stored bands on: the whole tensor, not a slice (whose backward would copy into zeros)
         rest = self.sh_rest if k - 1 == self.sh_rest.shape[1] else self.sh_rest[:, : k - 1]
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, rest), dim=1)
-        opacities = torch.sigmoid(self.opacity_logits)
-        if self.live is not None:  # unused rows of capacity buffers: culled, and no gradient reaches them
-            opacities = opacities * self.live
-        gs = GaussianSet(means=mu, quats=r, scales=s, opacities=opacities, sh=sh, sh_degree=deg, frames=frames)
+        gs = GaussianSet(means=mu, quats=r, scales=s, opacities=self.opacities(), sh=sh, sh_degree=deg, frames=frames)
         return gs, AvatarExtras(local_means=self.means, local_log_scales=self.log_scales, offsets=offsets,
                                 row_weights=self.row_weights)
 
@@ -611,10 +614,7 @@ def drawable_copy(avatar: Avatar) -> Avatar:
     measured (docs/evaluate.md, "Test-time pose fitting").
     Every kept Gaussian is posed, rectified and coloured as in ``avatar`` (each row on its own), so the
     copy renders the same images; its parameters are detached copies, without capacity buffers."""
-    keep = torch.sigmoid(avatar.opacity_logits[: avatar.num_gaussians]) >= ALPHA_MIN
-    keep = torch.cat((keep, keep.new_zeros(avatar.capacity - avatar.num_gaussians)))
-    if avatar.live is not None:
-        keep &= avatar.live > 0
+    keep = avatar.opacities() >= ALPHA_MIN  # capacity buffers' unused rows are drawn at opacity 0
     used = torch.unique(avatar._face_slot()[keep])
     out = copy.copy(avatar)  # a shallow copy: the shared buffers and the rectifier stay shared
     out._parameters, out._buffers = dict(avatar._parameters), dict(avatar._buffers)

@@ -313,9 +313,9 @@ def prune_mask(opacities: torch.Tensor, face_ids: torch.Tensor, threshold: float
 
 def prune(avatar, optimizer: torch.optim.Optimizer | None, min_opacity: float = 0.005) -> int:
     """Remove Gaussians with opacity < min_opacity, never a face's last one. Returns how many went."""
-    n = avatar.num_gaussians
+    live = avatar.num_gaussians
     with torch.no_grad():
-        remove = prune_mask(torch.sigmoid(avatar.opacity_logits[:n]), avatar.face_ids[:n], min_opacity,
+        remove = prune_mask(torch.sigmoid(avatar.opacity_logits[:live]), avatar.face_ids[:live], min_opacity,
                             avatar.faces.shape[0])
     n = int(remove.sum())
     if n:
@@ -358,9 +358,12 @@ class DensityController:
         there is one), the statistics with them."""
         n = self.avatar.num_gaussians
         use_capacity(self.avatar, self.optimizer, self.config.max_gaussians)
-        pad = self.avatar.capacity - n
-        self.grad_accum = torch.cat((self.grad_accum, self.grad_accum.new_zeros(pad)))
-        self.count = torch.cat((self.count, self.count.new_zeros(pad)))
+        self._set_stats(self.grad_accum[:n], self.count[:n])
+
+    def _set_stats(self, grad_accum: torch.Tensor, count: torch.Tensor) -> None:
+        """The statistics [N] of the live Gaussians, with zero rows for the unused rows of capacity buffers."""
+        pad = self.avatar.capacity - grad_accum.shape[0]
+        self.grad_accum, self.count = (torch.cat((t, t.new_zeros(pad))) for t in (grad_accum, count))
 
     def _zero_stats(self) -> None:
         n, dev = self.avatar.capacity, self.avatar.means.device  # a row per Gaussian, unused ones included
@@ -432,9 +435,8 @@ class DensityController:
                 "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
-        n, pad = self.avatar.num_gaussians, self.avatar.capacity - self.avatar.num_gaussians
+        n = self.avatar.num_gaussians
         if state["grad_accum"].shape != (n,):
             raise ValueError(f"density state is for {state['grad_accum'].shape[0]} Gaussians, the avatar has {n}")
-        stats = [state[k].to(self.avatar.means.device) for k in ("grad_accum", "count")]
-        self.grad_accum, self.count = (torch.cat((t, t.new_zeros(pad))) for t in stats)
+        self._set_stats(*(state[k].to(self.avatar.means.device) for k in ("grad_accum", "count")))
         self.generator.set_state(state["generator"])
