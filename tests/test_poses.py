@@ -135,6 +135,14 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     assert PoseConfig().first_pass_iters(1000, False) == 0
     assert PoseConfig(first_pass=0.0).first_pass_iters(1000, True) == 0
     assert PoseConfig(first_pass=0.1).first_pass_iters(3, True) == 1
+    for bad in (0.0, -0.5, 1.5, float("nan"), True, "half"):
+        with pytest.raises(UserError, match="poses.first_pass_scale"):
+            PoseConfig(first_pass_scale=bad).validate()
+    # the first pass's size: its longer side scaled, never below LPIPS's 32 px nor above the run's own
+    assert PoseConfig().first_pass_size((512, 384)) is None
+    assert PoseConfig(first_pass_scale=0.5).first_pass_size((512, 384)) == 256
+    assert PoseConfig(first_pass_scale=0.5).first_pass_size((48, 48)) == 32
+    assert PoseConfig(first_pass_scale=0.5).first_pass_size((20, 20)) == 20
     (tmp_path / "fits.yaml").write_text("poses:\n  fits: [0.5, 0.8]\n")
     cfg = load_config(tmp_path / "fits.yaml").validate()
     assert cfg.poses.fits == (0.5, 0.8)

@@ -311,6 +311,43 @@ def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_p
     assert abs(err2["refined"]["joint_angle_deg"] - err1["refined"]["joint_angle_deg"]) < 1e-3
 
 
+def test_a_first_pass_at_a_smaller_size_trains_there_resumes_there_and_hands_on_its_poses(noisy, tmp_path,
+                                                                                         monkeypatch):
+    """poses.first_pass_scale 0.75 of 48 px: the first pass reads its frames at 36 px (its config says so),
+    the second at 48; stopped in the first pass and resumed, both passes end as an unstopped run's do, and
+    the second pass holds the first pass's poses."""
+    seen = []
+    original = Trainer.setup
+
+    def setup(self):
+        original(self)
+        seen.append((self.run_folder.path.name, self.cfg.data.size, self.dataset.image_size,
+                     (self.frames.width, self.frames.height)))
+
+    monkeypatch.setattr(Trainer, "setup", setup)
+    cfg = _two_pass_cfg(noisy)
+    cfg.poses.first_pass_scale = 0.75
+    whole = tmp_path / "whole"
+    train(cfg, whole, progress=False)
+    half, full = (36, 36), (SIZE, SIZE)
+    assert seen == [("pose_pass", 36, half, half), ("whole", SIZE, full, full)]
+    assert _checkpoint(whole / "pose_pass").config["data"]["size"] == 36
+    assert _checkpoint(whole).config["data"]["size"] == SIZE
+    run = tmp_path / "run"
+    stopped = _train_interrupted(cfg, run, monkeypatch, 2, "pose_pass")
+    assert stopped.interrupted and not RunFolder(run).has_checkpoint()
+    seen.clear()
+    train(None, run, resume=True, progress=False)
+    assert seen == [("pose_pass", 36, half, half), ("run", SIZE, full, full)]
+    for sub in ("pose_pass", ""):
+        a, b = _checkpoint(whole / sub), _checkpoint(run / sub)
+        for key, value in a.avatar["state_dict"].items():
+            assert torch.equal(value, b.avatar["state_dict"][key]), (sub, key)
+    p1, p2 = np.load(run / "pose_pass" / "poses.npz"), np.load(run / "poses.npz")
+    for key in ("global_orient", "body_pose", "transl"):
+        np.testing.assert_allclose(p2[key], p1[key], atol=1e-5, err_msg=key)
+
+
 @pytest.mark.parametrize("where", ["pose_pass", "run"], ids=["in-the-first-pass", "in-the-second-pass"])
 def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_path, monkeypatch, where):
     whole = tmp_path / "whole"
@@ -329,7 +366,7 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
         # the refits' settings are the second pass's alone: the first pass is taken over as it is
         second = _two_pass_cfg(noisy)
         second.poses.held_fits, second.poses.held_fit_lr_rotation, second.poses.held_fit_steps = (0.5,), 1e-3, 3
-        assert first_pass_config(second, RunFolder(run), True)[1].iteration == 2
+        assert first_pass_config(second, RunFolder(run), pipeline.open_dataset(second.data))[1].iteration == 2
     opened, reads, open_dataset = [], [], pipeline.open_dataset
     with monkeypatch.context() as m:  # both passes share one dataset; each checkpoint is read once
         m.setattr(pipeline, "open_dataset", lambda c: opened.append(c) or open_dataset(c))

@@ -125,8 +125,10 @@ def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
 def config_differences(saved: dict, cfg: TrainConfig, ignore: tuple[str, ...] = ()) -> list[str]:
     """The settings in which a run's saved config (a checkpoint's ``config``) differs from ``cfg``, as
     "key: saved -> now", leaving out what may change between the parts of one run (its length,
-    threads, device, logging) and the dotted keys ``ignore``."""
-    a, b = flatten(saved), flatten(to_dict(cfg))
+    threads, device, logging) and the dotted keys ``ignore``. A setting the saved config lacks (added since
+    it was written) counts as its default: a new setting's default is how runs trained before it, and the
+    migrations (rmavatar.avatar.run) fill in those whose later default is not."""
+    a, b = flatten(to_dict(config_from_dict(saved, where="the saved config"))), flatten(to_dict(cfg))
     skip = ("optim.iters", "threads", "device", *ignore)
     keys = sorted(k for k in set(a) | set(b) if not k.startswith("log.") and k not in skip and a.get(k) != b.get(k))
     return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in keys]

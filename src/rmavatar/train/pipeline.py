@@ -84,14 +84,16 @@ def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | No
     # lock is held), so a wrong path or a broken frame leaves nothing behind and is not found hours in.
     dataset = open_dataset(cfg.data)
     check_files(dataset, [cfg.data.split], progress=progress)
-    first, first_ckpt = (None, None) if ckpt is not None else first_pass_config(cfg, run, dataset.poses_estimated)
+    first, first_ckpt = (None, None) if ckpt is not None else first_pass_config(cfg, run, dataset)
     _start(cfg, run, ckpt is not None)
     if first is not None and (first_ckpt is None or first_ckpt.iteration < first.optim.iters):
         if progress:
             print(f"pose pass: {first.optim.iters} iterations refine the training poses ({run.pose_pass.path}), "
                   f"then the avatar is trained afresh on them for {cfg.optim.iters}", flush=True)
         _start(first, run.pose_pass, first_ckpt is not None)
-        result = Trainer(first, run.pose_pass, first_ckpt, progress, on_iteration, dataset).run()
+        # a first pass at a smaller size (poses.first_pass_scale) reads the frames at its own size
+        own = dataset if first.data.size == cfg.data.size else None
+        result = Trainer(first, run.pose_pass, first_ckpt, progress, on_iteration, own).run()
         if result.interrupted:
             return result
     return Trainer(cfg, run, ckpt, progress, on_iteration, dataset).run()
@@ -103,16 +105,16 @@ def _start(cfg: TrainConfig, run: RunFolder, resume: bool) -> None:
     save_config(cfg, run.config)
 
 
-def first_pass_config(cfg: TrainConfig, run: RunFolder,
-                      poses_estimated: bool) -> tuple[TrainConfig | None, Checkpoint | None]:
-    """The config of the first pass of a two-pass run (None: one pass) and its checkpoint (None: not
-    begun). A first pass already there (stopped, or done) must have been trained with the same settings;
-    its length is its own."""
-    iters = cfg.poses.first_pass_iters(cfg.optim.iters, poses_estimated)
+def first_pass_config(cfg: TrainConfig, run: RunFolder, dataset) -> tuple[TrainConfig | None, Checkpoint | None]:
+    """The config of the first pass of a two-pass run on ``dataset`` (opened at the run's size; None: one
+    pass) and its checkpoint (None: not begun). A first pass already there (stopped, or done) must have
+    been trained with the same settings; its length is its own."""
+    iters = cfg.poses.first_pass_iters(cfg.optim.iters, dataset.poses_estimated)
     if not iters:
         return None, None
     first = copy.deepcopy(cfg)
     first.optim.iters, first.poses.first_pass, first.poses.held_fits = iters, 0.0, ()
+    first.data.size = cfg.poses.first_pass_size(dataset.image_size) or cfg.data.size
     if not run.pose_pass.has_checkpoint():
         return first, None
     ckpt = run.pose_pass.read_checkpoint()

@@ -41,6 +41,7 @@ class PoseConfig:
 
     refine: bool | None = None  # refine the training poses; None = when the dataset's poses are estimated
     first_pass: float = 0.5  # a first pass of this fraction of optim.iters refines the poses; 0 = one pass
+    first_pass_scale: float = 1.0  # the first pass trains and fits at this fraction of the image size (>= 32 px)
     # --- advanced ---
     smooth: int = 2  # first average the given poses over +-this many video frames (tracker jitter); 0 = off
     warmup: float = 0.1  # fraction of a refining pass with frozen corrections (the avatar takes shape first)
@@ -73,6 +74,9 @@ class PoseConfig:
             if bad or any(not 0 < f < 1 for f in value):
                 raise UserError(f"poses.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
+        scale = self.first_pass_scale
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1:
+            raise UserError(f"poses.first_pass_scale must be a fraction of the image size in (0, 1], got {scale!r}")
         f = self.first_pass
         if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 1:
             raise UserError(f"poses.first_pass must be a fraction of optim.iters in [0, 1], got {f!r}")
@@ -87,6 +91,13 @@ class PoseConfig:
         if not self.refines(poses_estimated) or self.first_pass == 0:
             return 0
         return max(1, round(self.first_pass * iters))
+
+    def first_pass_size(self, image_size: tuple[int, int]) -> int | None:
+        """The first pass's ``data.size`` (its longer side, at least 32 px, LPIPS's least) for frames of
+        ``image_size`` (width, height) at the run's size; None: the run's own size."""
+        if self.first_pass_scale == 1:
+            return None
+        return min(max(image_size), max(32, round(self.first_pass_scale * max(image_size))))
 
     def warmup_steps(self, iters: int) -> int:
         """Steps with frozen corrections; refinement starts at step ``warmup_steps(iters) + 1``."""
