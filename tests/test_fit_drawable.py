@@ -88,3 +88,40 @@ def test_the_drawable_copy_renders_and_differentiates_as_the_whole_avatar(device
     for name, value in before.items():
         assert torch.equal(getattr(av, name), value), name
     assert torch.equal(av._face_slot(), slot)
+
+
+def test_a_trained_avatar_is_loaded_without_its_faint_gaussians_and_draws_the_same(trained_run, tmp_path):
+    """load_trained keeps only the drawable Gaussians (every_gaussian=True: all of them, as trained): a
+    run whose checkpoint has a third of its Gaussians just below 1/255 poses fewer and renders the same
+    frames; one with nothing to draw keeps them all."""
+    import shutil
+
+    from rmavatar.avatar import load_trained
+    from rmavatar.avatar.run import read_checkpoint
+    from rmavatar.body import PoseSequence
+    from rmavatar.data import load_dataset
+    from rmavatar.train.checkpoint import save_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    path = run / "checkpoints" / "last.pt"
+    ckpt = read_checkpoint(path)
+    logits = ckpt.avatar["state_dict"]["opacity_logits"]
+    gen = torch.Generator().manual_seed(0)
+    faint = torch.rand(logits.shape[0], generator=gen) < 0.3
+    logits[faint] = float(torch.logit(torch.tensor(0.99 / 255)))
+    save_checkpoint(path, ckpt)
+
+    whole, drawn = load_trained(run, every_gaussian=True), load_trained(run)
+    n = whole.avatar.num_gaussians
+    assert n == logits.shape[0] and drawn.avatar.num_gaussians == n - int(faint.sum()) < 0.8 * n
+    ds = load_dataset(whole.data_spec, size=whole.size)
+    frame = ds.frame("train", 0)
+    poses = PoseSequence.from_params(ds.params("train"))
+    images = [t.render(t.pose(poses, 0), frame.camera) for t in (whole, drawn)]
+    assert float((images[0] < 0.9).float().mean()) > 0.05  # the body is in the picture
+    torch.testing.assert_close(images[1], images[0], rtol=0, atol=1e-6)
+
+    logits.fill_(float(torch.logit(torch.tensor(0.5 / 255))))
+    save_checkpoint(path, ckpt)
+    assert load_trained(run).avatar.num_gaussians == n

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rmavatar.avatar.model import Avatar
+from rmavatar.avatar.model import Avatar, drawable_copy
 from rmavatar.avatar.run import RunFolder, load_saved_body, training_betas
 from rmavatar.body import PoseSequence, apply_pose_corrections, posed_vertices, rest_pose
 from rmavatar.body.poses import hands_given
@@ -144,8 +144,13 @@ class TrainedAvatar:
         return image
 
 
-def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu") -> TrainedAvatar:
-    """Read RUN/checkpoints/last.pt: the avatar on its body model, its shape, the config and the iteration."""
+def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu",
+                 every_gaussian: bool = False) -> TrainedAvatar:
+    """Read RUN/checkpoints/last.pt: the avatar on its body model, its shape, the config and the iteration.
+
+    The avatar holds only the Gaussians a rasterizer can draw (:func:`rmavatar.avatar.model.drawable_copy`):
+    the others (opacity under 1/255) change no pixel but cost their posing in every frame, and trained
+    avatars hold many (docs/model.md, "Measured choices"). ``every_gaussian``: keep them all, as trained."""
     run = RunFolder(run_dir)
     run.check_trained()
     path = run.checkpoint
@@ -153,6 +158,8 @@ def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu")
     body = load_saved_body(ckpt.body, str(path))
     avatar = Avatar.from_state(body, ckpt.avatar, where=str(path))
     avatar.eval()
+    if not every_gaussian:
+        avatar = drawable_copy(avatar)
     config = ckpt.config
     betas, betas_error = ckpt.betas, None
     if betas is None and body.num_betas > 0:  # a version-1 checkpoint: the shape is its training data's
