@@ -41,8 +41,8 @@ class PoseConfig:
 
     refine: bool | None = None  # refine the training poses; None = when the dataset's poses are estimated
     first_pass: float = 0.5  # a first pass of this fraction of optim.iters refines the poses; 0 = one pass
-    first_pass_scale: float = 1.0  # the first pass trains and fits at this fraction of the image size (>= 32 px)
     # --- advanced ---
+    first_pass_scale: float = 1.0  # the first pass trains and fits at this fraction of the image size (>= 32 px)
     smooth: int = 2  # first average the given poses over +-this many video frames (tracker jitter); 0 = off
     warmup: float = 0.1  # fraction of a refining pass with frozen corrections (the avatar takes shape first)
     lr_rotation: float = 2e-2  # per-step corrections: radians per Adam step
