@@ -121,6 +121,7 @@ def test_a_trained_avatar_is_loaded_without_its_faint_gaussians_and_draws_the_sa
     images = [t.render(t.pose(poses, 0), frame.camera) for t in (whole, drawn)]
     assert float((images[0] < 0.9).float().mean()) > 0.05  # the body is in the picture
     torch.testing.assert_close(images[1], images[0], rtol=0, atol=1e-6)
+    assert drawable_copy(drawn.avatar) is drawn.avatar  # eval's pose fit does not copy it again
 
     logits.fill_(float(torch.logit(torch.tensor(0.5 / 255))))
     save_checkpoint(path, ckpt)

@@ -605,7 +605,8 @@ class Avatar(nn.Module):
 def drawable_copy(avatar: Avatar) -> Avatar:
     """A copy of ``avatar`` holding only the Gaussians a rasterizer can draw, and only the binding faces
     they sit on, for work that holds the avatar still and poses it many times (pose fits, and every use of
-    a trained avatar: ``load_trained``). An avatar with nothing to draw is returned as it is.
+    a trained avatar: ``load_trained``). An avatar with nothing to draw, or nothing to leave out (no
+    faint Gaussian, no capacity buffers: a drawable copy already), is returned as it is.
 
     A Gaussian's alpha at a pixel is at most its opacity, and every backend skips alphas under
     ``ALPHA_MIN`` (1/255, as 3DGS and gsplat): one with a lower opacity adds nothing to any image or
@@ -615,7 +616,7 @@ def drawable_copy(avatar: Avatar) -> Avatar:
     Every kept Gaussian is posed, rectified and coloured as in ``avatar`` (each row on its own), so the
     copy renders the same images; its parameters are detached copies, without capacity buffers."""
     keep = avatar.opacities() >= ALPHA_MIN  # capacity buffers' unused rows are drawn at opacity 0
-    if not keep.any():
+    if not keep.any() or (avatar.live is None and keep.all()):
         return avatar
     used = torch.unique(avatar._face_slot()[keep])
     out = copy.copy(avatar)  # a shallow copy: the shared buffers and the rectifier stay shared
