@@ -25,23 +25,15 @@ from rmavatar.train.poses import read_poses
 
 
 def pixel_error(body, betas, poses: PoseSequence, truth: PoseSequence, cameras) -> float:
-    """Mean over frames and vertices of |project(v) - project(v_true)| in pixels."""
+    """Mean over frames and vertices of |project(v) - project(v_true)| in pixels (``Camera.project``)."""
     def vertices(p):
         with torch.no_grad():
             return body(betas, p.global_orient.float(), p.body_pose.float(), p.transl.float(),
-                        hand_pose=p.hand_pose).vertices.double()
+                        hand_pose=p.hand_pose).vertices.double().numpy()
 
     ours, true = vertices(poses), vertices(truth)
-    errors = []
-    for i, cam in enumerate(cameras):
-        P = torch.tensor(cam.K, dtype=torch.float64) @ torch.tensor(cam.viewmat[:3], dtype=torch.float64)
-
-        def project(v):
-            x = v @ P[:, :3].T + P[:, 3]
-            return x[:, :2] / x[:, 2:]
-
-        errors.append((project(ours[i]) - project(true[i])).norm(dim=-1).mean().item())
-    return float(np.mean(errors))
+    return float(np.mean([np.linalg.norm(cam.project(ours[i]) - cam.project(true[i]), axis=-1).mean()
+                          for i, cam in enumerate(cameras)]))
 
 
 def main() -> None:
