@@ -5,6 +5,7 @@ folder and the trained avatar, --fit-poses never touches the checkpoint and fits
 import hashlib
 import json
 import os
+import shutil
 import signal
 from pathlib import Path
 
@@ -309,6 +310,31 @@ def test_two_passes_train_the_avatar_afresh_on_the_first_pass_poses(noisy, tmp_p
     err1, err2 = (json.loads((d / "pose_error.json").read_text()) for d in (run / "pose_pass", run))
     assert err2["given"] == err1["given"]
     assert abs(err2["refined"]["joint_angle_deg"] - err1["refined"]["joint_angle_deg"]) < 1e-3
+
+
+def test_the_second_pass_can_start_from_the_first_pass_poses_smoothed(noisy, tmp_path):
+    """poses.smooth_held: the second pass holds the first pass's poses averaged over +-poses.smooth frames
+    (body.smooth_poses), not as they were left; a first pass trained without it is taken as it is (the
+    setting is the second pass's), not trained again."""
+    from rmavatar.body import PoseSequence, smooth_poses
+
+    plain, smoothed = tmp_path / "plain", tmp_path / "smoothed"
+    train(_two_pass_cfg(noisy), plain, progress=False)
+    smoothed.mkdir()
+    for name in ("rmavatar-run.json", "pose_pass"):
+        (shutil.copytree if (plain / name).is_dir() else shutil.copy)(plain / name, smoothed / name)
+    before = hashlib.sha1((smoothed / "pose_pass" / "checkpoints" / "last.pt").read_bytes()).hexdigest()
+    cfg = _two_pass_cfg(noisy)
+    cfg.poses.smooth_held = True
+    train(cfg, smoothed, progress=False)
+    assert hashlib.sha1((smoothed / "pose_pass" / "checkpoints" / "last.pt").read_bytes()).hexdigest() == before
+    with np.load(plain / "pose_pass" / "poses.npz") as f:
+        first, index = PoseSequence.from_params(f), f["index"]
+    expected = smooth_poses(first, index, cfg.poses.smooth)
+    with np.load(smoothed / "poses.npz") as held, np.load(plain / "poses.npz") as unsmoothed:
+        for key in ("global_orient", "body_pose", "transl"):
+            np.testing.assert_allclose(held[key], getattr(expected, key).numpy(), atol=1e-5, err_msg=key)
+        assert np.abs(unsmoothed["body_pose"] - held["body_pose"]).max() > 1e-3  # the smoothing did something
 
 
 def test_a_first_pass_at_a_smaller_size_trains_there_resumes_there_and_hands_on_its_poses(noisy, tmp_path,

@@ -35,7 +35,7 @@ from rmavatar.utils import UserError, check_writable_folder
 RESUME_CHANGEABLE = ("optim.iters", "threads", "device", "cuda_graphs", "density.capacity", "log.")
 # The second pass's settings, which its first pass does not use.
 HELD_FIT_KEYS = ("poses.held_fits", "poses.held_fit_steps", "poses.held_fit_lr_rotation",
-                 "poses.held_fit_lr_translation")
+                 "poses.held_fit_lr_translation", "poses.smooth_held")
 
 
 def train(cfg: TrainConfig | None, run_dir: str | Path, *, resume: bool = False, data: str | None = None,
@@ -113,7 +113,7 @@ def first_pass_config(cfg: TrainConfig, run: RunFolder, dataset) -> tuple[TrainC
     if not iters:
         return None, None
     first = copy.deepcopy(cfg)
-    first.optim.iters, first.poses.first_pass, first.poses.held_fits = iters, 0.0, ()
+    first.optim.iters, first.poses.first_pass, first.poses.held_fits, first.poses.smooth_held = iters, 0.0, (), False
     first.data.size = cfg.poses.first_pass_size(dataset.image_size) or cfg.data.size
     if not run.pose_pass.has_checkpoint():
         return first, None

@@ -9,7 +9,8 @@ a frame's correction otherwise moves only on the ~1 in n steps that sample it.
 
 Two passes (``poses.first_pass``): a first run of that fraction of the iterations refines the poses (in
 RUN/pose_pass, a run folder of its own); then the avatar is trained afresh on those poses, *held*
-(``held=True``: no per-step corrections), fitting them again at ``poses.held_fits`` of the second pass.
+(``held=True``: no per-step corrections; with ``poses.smooth_held`` first averaged over neighbouring
+frames, as the given poses are), fitting them again at ``poses.held_fits`` of the second pass.
 
 The trainer's hooks, in the order it calls them: :meth:`PoseRefinement.start_poses` (the poses the held
 bodies start from), :meth:`before_step` (a pose fit when one is due; returns poses to hold),
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from rmavatar.avatar.run import RunFolder
-from rmavatar.body import PoseSequence, pose_error
+from rmavatar.body import PoseSequence, pose_error, smooth_poses
 from rmavatar.train.optim import position_lr
 from rmavatar.train.poses import PoseRefiner, read_poses, write_poses
 from rmavatar.utils import UserError, atomic_path
@@ -44,6 +45,7 @@ class PoseConfig:
     # --- advanced ---
     first_pass_scale: float = 1.0  # the first pass trains and fits at this fraction of the image size (>= 32 px)
     smooth: int = 2  # first average the given poses over +-this many video frames (tracker jitter); 0 = off
+    smooth_held: bool = False  # the second pass starts from the first pass's poses averaged the same way
     warmup: float = 0.1  # fraction of a refining pass with frozen corrections (the avatar takes shape first)
     lr_rotation: float = 2e-2  # per-step corrections: radians per Adam step
     lr_translation: float = 5e-4  # per-step corrections: metres per Adam step
@@ -150,9 +152,13 @@ class PoseRefinement:
 
     def start_poses(self, given: PoseSequence, first_pass: RunFolder, index, split: str,
                     resumed: bool) -> PoseSequence:
-        """The poses the held bodies start from: a fresh second pass takes the first pass's result."""
+        """The poses the held bodies start from: a fresh second pass takes the first pass's result
+        (averaged over +-``smooth`` frames with ``smooth_held``)."""
         if self.held and not resumed:
-            self.refiner.set_poses(read_poses(first_pass.poses, index, split))
+            poses = read_poses(first_pass.poses, index, split)
+            if self.cfg.smooth_held:
+                poses = smooth_poses(poses, index, self.cfg.smooth)
+            self.refiner.set_poses(poses)
         return self.refiner.poses() if self.held else given
 
     def before_step(self, iteration: int, avatar, body, frames, background: torch.Tensor) -> PoseSequence | None:
