@@ -6,7 +6,7 @@ DATA: a subject made by ``rmavatar synth`` (its true poses in smpl_true.npz); RU
 with ``poses.refine``. For the training frames, prints the mean distance in pixels (at ``--size``)
 between the projected vertices of the body posed with a set of poses and of the body posed with the true
 poses, averaged over the vertices (seen or not) and the frames: for the dataset's poses, the same
-smoothed as a run starts from (+-2 frames), and each run's first-pass and final refined poses.
+smoothed as a run starts from (+-``poses.smooth`` frames), and each run's first-pass and final refined poses.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from rmavatar.avatar.trained import load_trained
 from rmavatar.body import PoseSequence, smooth_poses
 from rmavatar.data import load_dataset
 from rmavatar.data.synth import true_poses
+from rmavatar.train.pose_refine import PoseConfig
 from rmavatar.train.poses import read_poses
 
 
@@ -52,7 +53,8 @@ def main() -> None:
     body = load_trained(args.runs[0], device="cpu").body
     betas = torch.as_tensor(params["betas"]).float() if body.num_betas > 0 else None
     given = PoseSequence.from_params(params)
-    rows = [("given", given), ("given, smoothed +-2 frames", smooth_poses(given, params["index"], 2))]
+    radius = PoseConfig().smooth
+    rows = [("given", given), (f"given, smoothed +-{radius} frames", smooth_poses(given, params["index"], radius))]
     for run in map(Path, args.runs):
         for name in ("pose_pass/poses.npz", "poses.npz"):
             if (run / name).is_file():

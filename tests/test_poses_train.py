@@ -321,13 +321,14 @@ def test_the_second_pass_can_start_from_the_first_pass_poses_smoothed(noisy, tmp
     plain, smoothed = tmp_path / "plain", tmp_path / "smoothed"
     train(_two_pass_cfg(noisy), plain, progress=False)
     smoothed.mkdir()
-    for name in ("rmavatar-run.json", "pose_pass"):
-        (shutil.copytree if (plain / name).is_dir() else shutil.copy)(plain / name, smoothed / name)
-    before = hashlib.sha1((smoothed / "pose_pass" / "checkpoints" / "last.pt").read_bytes()).hexdigest()
+    shutil.copy(RunFolder(plain).marker, RunFolder(smoothed).marker)
+    shutil.copytree(plain / "pose_pass", smoothed / "pose_pass")
+    first_ckpt = RunFolder(smoothed / "pose_pass").checkpoint
+    before = hashlib.sha256(first_ckpt.read_bytes()).hexdigest()
     cfg = _two_pass_cfg(noisy)
     cfg.poses.smooth_held = True
     train(cfg, smoothed, progress=False)
-    assert hashlib.sha1((smoothed / "pose_pass" / "checkpoints" / "last.pt").read_bytes()).hexdigest() == before
+    assert hashlib.sha256(first_ckpt.read_bytes()).hexdigest() == before
     with np.load(plain / "pose_pass" / "poses.npz") as f:
         first, index = PoseSequence.from_params(f), f["index"]
     expected = smooth_poses(first, index, cfg.poses.smooth)
