@@ -114,11 +114,16 @@ def test_a_v4_run_with_pose_refinement_loads_and_resumes_as_that_version_resumed
         cfg.optim.pose_sweeps = (); cfg.threads = 1; train(cfg, RUN)
 
     its checkpoint xz-compressed (the dataset is made again here: the same config makes the same data),
-    and ``expected_resume.json`` the SHA-256 of what that version's ``train(None, RUN, resume=True,
-    overrides=[(4, "optim", "iters")])`` ended with. Today's code migrates it (v4 -> v5), reads its
-    RUN/config.yaml, and resumes it to the same bits."""
-    import hashlib
-    import json
+    and ``expected_resume.npz.xz`` what that version's ``train(None, RUN, resume=True, overrides=[(4,
+    "optim", "iters")])`` ended with. Today's code migrates it (v4 -> v5), reads its RUN/config.yaml, and
+    resumes it to the same values.
+
+    Same values, not same bits: the bits depend on the CPU's code paths (MKL, oneDNN and numba pick
+    them per CPU). On the machine that made the expected arrays, today's code gives the same bits; the
+    tolerance is a twentieth of what the two resumed steps moved each tensor, tens of times what forcing
+    generic (SSE) code paths changes, and far below what a resume that lost the Gaussians' optimiser state or
+    the pose corrections would change."""
+    import io
 
     from rmavatar.data.synth import SynthConfig, synthesize
     from rmavatar.train import train
@@ -127,7 +132,7 @@ def test_a_v4_run_with_pose_refinement_loads_and_resumes_as_that_version_resumed
     synthesize(data, SynthConfig(size=48, seed=0, train=4, test=1, novel_pose=1, ss=1, pose_noise=5.0),
                progress=False)
     run = RunFolder(tmp_path / "run")
-    shutil.copytree(FIXTURE_V4, run.path, ignore=shutil.ignore_patterns("*.xz", "expected_resume.json"))
+    shutil.copytree(FIXTURE_V4, run.path, ignore=shutil.ignore_patterns("*.xz"))
     with lzma.open(FIXTURE_V4 / "checkpoints" / "last.pt.xz") as src:
         raw = torch.load(src, map_location="cpu", weights_only=True)
     assert raw["version"] == 4 and raw["config"]["optim"]["refine_poses"] is True
@@ -145,9 +150,14 @@ def test_a_v4_run_with_pose_refinement_loads_and_resumes_as_that_version_resumed
     assert trained.iteration == 2 and trained.training_poses is not None
     train(None, run.path, resume=True, overrides={"optim.iters": 4}, progress=False)
     done = run.read_checkpoint()
-    expected = json.loads((FIXTURE_V4 / "expected_resume.json").read_text())
+    with lzma.open(FIXTURE_V4 / "expected_resume.npz.xz") as src:
+        expected = dict(np.load(io.BytesIO(src.read())))
+    start = {"means": raw["avatar"]["state_dict"]["means"], "sh_dc": raw["avatar"]["state_dict"]["sh_dc"],
+             "delta": raw["poses"]["delta"]}
     got = {"means": done.avatar["state_dict"]["means"], "sh_dc": done.avatar["state_dict"]["sh_dc"],
            "delta": done.poses["delta"]}
-    assert done.iteration == expected["iteration"] == 4
+    assert done.iteration == 4
     for key, value in got.items():
-        assert hashlib.sha256(value.numpy().tobytes()).hexdigest() == expected[key], key
+        moved = np.abs(expected[key] - start[key].numpy()).max()
+        assert moved > 0, key
+        np.testing.assert_allclose(value.numpy(), expected[key], rtol=0, atol=moved / 20, err_msg=key)
