@@ -509,6 +509,41 @@ def _fit_shape(body, params: dict, obs, cfg: ShapeFitConfig | None):
     return shape, load_body_model(body.spec, offsets=shape.offsets).to(body.faces.device)
 
 
+@dataclass
+class _Fitted:
+    """What :func:`_fit_clip` made: the body (rebuilt with the fitted offsets, where fitted), the
+    dataset's SMPL-style params, the body fit's final losses, the hand fit (None: not fitted) and the
+    shape fit (None: the preset's shape)."""
+
+    body: object
+    params: dict
+    losses: dict
+    hands: object
+    shape: object
+
+
+def _fit_clip(body, clip: _Clip, K: np.ndarray, size: tuple[int, int], fps: float, cfg: CaptureConfig,
+              stages: _Stages, device, fingers: bool, progress: bool) -> _Fitted:
+    """The body fitted to the clip's landmarks, then its fingers (``fingers``), then its shape to the masks."""
+    from rmavatar.capture.fit import fit_body
+
+    with stages("fit"):
+        obs = _observations(clip, K, size, device)
+        result = fit_body(body, obs, cfg.fit, progress=progress)
+    params = {"betas": result.betas, "global_orient": result.global_orient, "body_pose": result.body_pose,
+              "transl": result.transl}
+    hands = None
+    if fingers:
+        with stages("fit"):
+            hands = _fit_hands(body, params, clip, K, fps, cfg.hands)
+        params.update(body_pose=hands.body_pose, hand_pose=hands.hand_pose, hand_found=hands.found)
+    with stages("shape"):
+        shape, body = _fit_shape(body, params, obs, cfg.shape)
+    if shape is not None:
+        params["body_offsets"] = shape.offsets
+    return _Fitted(body, params, result.losses, hands, shape)
+
+
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
@@ -520,7 +555,6 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     from tqdm import tqdm
 
     from rmavatar.body import load_body_model
-    from rmavatar.capture.fit import fit_body
     from rmavatar.capture.frames import kept_frames, open_source
     from rmavatar.capture.sheet import contact_sheet
     from rmavatar.data import Camera
@@ -555,22 +589,11 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         n = len(clip.index)
         splits = _splits(n, cfg.test_fraction, source.path, "with a person")  # before the fit's minutes
         K = intrinsics(*size, fov=cfg.fov, focal=cfg.focal)
-        with stages("fit"):
-            obs = _observations(clip, K, size, device)
-            result = fit_body(body, obs, cfg.fit, progress=progress)
-        params = {"betas": result.betas, "global_orient": result.global_orient, "body_pose": result.body_pose,
-                  "transl": result.transl}
-        hands = None
-        if fingers:
-            with stages("fit"):
-                hands = _fit_hands(body, params, clip, K, source.fps, cfg.hands)
-            params.update(body_pose=hands.body_pose, hand_pose=hands.hand_pose, hand_found=hands.found)
-        with stages("shape"):
-            shape, body = _fit_shape(body, params, obs, cfg.shape)
-        if shape is not None:
-            params["body_offsets"] = shape.offsets
+        fitted = _fit_clip(body, clip, K, size, source.fps, cfg, stages, device, fingers, progress)
+        body, params = fitted.body, fitted.params
         spec = getattr(body, "spec", cfg.body)
-        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), result.losses, hands, shape)
+        meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), fitted.losses, fitted.hands,
+                             fitted.shape)
         camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
         with stages("write"), \
                 output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
@@ -587,8 +610,8 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         "no_person": clip.no_person, "other_person": clip.other_person, "looked_at": clip.look.looked,
         "detection_size": list(clip.work_size), "body": spec,
         "camera": {"fx": float(K[0, 0]), "width": size[0], "height": size[1]},
-        "losses": result.losses, "hands": _hands_found(hands, clip),
-        "shape": None if shape is None else shape.summary(), "seconds": dict(stages.wall),
+        "losses": fitted.losses, "hands": _hands_found(fitted.hands, clip),
+        "shape": None if fitted.shape is None else fitted.shape.summary(), "seconds": dict(stages.wall),
         "cpu_seconds": dict(stages.cpu),
         "total_seconds": total, "seconds_per_frame": total / max(clip.decoded, 1),
     }
