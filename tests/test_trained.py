@@ -152,10 +152,10 @@ def test_a_v4_run_with_pose_refinement_loads_and_resumes_as_that_version_resumed
     done = run.read_checkpoint()
     with lzma.open(FIXTURE_V4 / "expected_resume.npz.xz") as src:
         expected = dict(np.load(io.BytesIO(src.read())))
-    start = {"means": raw["avatar"]["state_dict"]["means"], "sh_dc": raw["avatar"]["state_dict"]["sh_dc"],
-             "delta": raw["poses"]["delta"]}
-    got = {"means": done.avatar["state_dict"]["means"], "sh_dc": done.avatar["state_dict"]["sh_dc"],
-           "delta": done.poses["delta"]}
+    def compared(avatar: dict, poses: dict) -> dict:
+        return {"means": avatar["state_dict"]["means"], "sh_dc": avatar["state_dict"]["sh_dc"], "delta": poses["delta"]}
+
+    start, got = compared(raw["avatar"], raw["poses"]), compared(done.avatar, done.poses)
     assert done.iteration == 4
     for key, value in got.items():
         moved = np.abs(expected[key] - start[key].numpy()).max()
