@@ -118,6 +118,11 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     for bad in (0.75, [0.0], [1.0], ["x"], [True]):
         with pytest.raises(UserError, match="poses.held_fits"):
             PoseConfig(held_fits=bad).validate()
+    for bad in ((), (0,), (2.0,), (True,), 2, "4,2,1"):
+        with pytest.raises(UserError, match="poses.held_fit_scales"):
+            PoseConfig(held_fit_scales=bad).validate()
+    assert PoseConfig(held_fit_scales=[2, 1]).validate().fit_config(held=True).scales == (2, 1)
+    assert PoseConfig(held_fit_scales=(1,)).validate().fit_config(held=False).scales == (4, 2, 1)
     for bad in (0.0, -1e-3, float("nan"), True):
         with pytest.raises(UserError, match="held_fit_lr_rotation"):
             PoseConfig(held_fit_lr_rotation=bad).validate()

@@ -393,6 +393,7 @@ def test_a_two_pass_run_stopped_in_either_pass_resumes_bit_identical(noisy, tmp_
         # the refits' settings are the second pass's alone: the first pass is taken over as it is
         second = _two_pass_cfg(noisy)
         second.poses.held_fits, second.poses.held_fit_lr_rotation, second.poses.held_fit_steps = (0.5,), 1e-3, 3
+        second.poses.held_fit_scales = (1,)
         assert first_pass_config(second, RunFolder(run), pipeline.open_dataset(second.data))[1].iteration == 2
     opened, reads, open_dataset = [], [], pipeline.open_dataset
     with monkeypatch.context() as m:  # both passes share one dataset; each checkpoint is read once
@@ -412,7 +413,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
                                                                                         monkeypatch):
     """poses.held_fits [0.625] of a second pass of 8 iterations: after its iteration 4 (and only then;
     5 is an opacity reset in a run this short, so one earlier) the avatar being trained fits every held
-    pose again, at poses.held_fit_lr_* for poses.held_fit_steps (both fits weigh the mask by
+    pose again, at poses.held_fit_lr_* for poses.held_fit_steps over poses.held_fit_scales (both fits weigh the mask by
     poses.fit_mask); the refitted poses render
     the frames closer to their images, the held bodies and face tables are posed again from them, and
     RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
@@ -425,6 +426,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     cfg.poses.held_fit_lr_rotation, cfg.poses.held_fit_lr_translation = 4e-3, 1e-4
     cfg.poses.fit_steps = 10
     cfg.poses.held_fit_steps = 7
+    cfg.poses.held_fit_scales = (2, 1)
     cfg.poses.fit_mask = 2.0
     seen, rates, holds = [], [], []
     original_fit, original_hold = fit_module.fit_poses, FrameCache.hold
@@ -444,7 +446,8 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
         holds.append((poses, self.face_tables is not None))
 
     def fit(*args, **kwargs):
-        rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps, args[6].silhouette))
+        rates.append((args[6].lr_rotation, args[6].lr_translation, args[6].steps, args[6].silhouette,
+                      args[6].scales))
         return original_fit(*args, **kwargs)
 
     monkeypatch.setattr(fit_module, "fit_poses", fit)
@@ -454,7 +457,8 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     train(cfg, whole, progress=False)
     assert [s[0] for s in seen] == [4]
     assert holds[-1][1] and torch.equal(holds[-1][0].body_pose, seen[0][2].body_pose)  # the refit's poses
-    assert rates == [(2e-2, 5e-4, 10, 2.0), (4e-3, 1e-4, 7, 2.0)]  # the first pass's sweep, then the refit
+    # the first pass's sweep, then the refit
+    assert rates == [(2e-2, 5e-4, 10, 2.0, (4, 2, 1)), (4e-3, 1e-4, 7, 2.0, (2, 1))]
     _, before, after, err_before, err_after = seen[0]
     print("refit: image error", err_before, "->", err_after)
     assert err_after < err_before

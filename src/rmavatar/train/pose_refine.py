@@ -59,6 +59,7 @@ class PoseConfig:
     held_fit_steps: int = 30  # Adam steps per frame in those fits
     held_fit_lr_rotation: float = 5e-3  # their rotation learning rate: lower, the poses are nearly right
     held_fit_lr_translation: float = 1.25e-4  # their translation learning rate
+    held_fit_scales: tuple[int, ...] = (4, 2, 1)  # their coarse-to-fine pixel blocks (PoseFitConfig.scales)
 
     def validate(self) -> "PoseConfig":
         check_fields(self, "poses", positive=("lr_final_scale", "held_fit_lr_rotation"),
@@ -76,6 +77,11 @@ class PoseConfig:
             if bad or any(not 0 < f < 1 for f in value):
                 raise UserError(f"poses.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
+        blocks = self.held_fit_scales
+        if not isinstance(blocks, (list, tuple)) or not blocks or any(
+                isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in blocks):
+            raise UserError(f"poses.held_fit_scales must be whole numbers of pixels >= 1, got {blocks!r}")
+        self.held_fit_scales = tuple(blocks)
         scale = self.first_pass_scale
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1:
             raise UserError(f"poses.first_pass_scale must be a fraction of the image size in (0, 1], got {scale!r}")
@@ -127,7 +133,7 @@ class PoseConfig:
         from rmavatar.evaluate.fit import PoseFitConfig
 
         if held:
-            return PoseFitConfig(steps=self.held_fit_steps, silhouette=self.fit_mask,
+            return PoseFitConfig(steps=self.held_fit_steps, silhouette=self.fit_mask, scales=self.held_fit_scales,
                                  lr_rotation=self.held_fit_lr_rotation, lr_translation=self.held_fit_lr_translation)
         return PoseFitConfig(steps=self.fit_steps, silhouette=self.fit_mask, lr_rotation=self.fit_lr_rotation,
                              lr_translation=self.fit_lr_translation)
