@@ -118,9 +118,10 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     for bad in (0.75, [0.0], [1.0], ["x"], [True]):
         with pytest.raises(UserError, match="poses.held_fits"):
             PoseConfig(held_fits=bad).validate()
-    for bad in ((), (0,), (2.0,), (True,), 2, "4,2,1"):
+    for bad in ((), (0,), (1.5,), (True,), 2, "4,2,1"):
         with pytest.raises(UserError, match="poses.held_fit_scales"):
             PoseConfig(held_fit_scales=bad).validate()
+    assert PoseConfig(held_fit_scales=[2.0, 1]).validate().held_fit_scales == (2, 1)  # as YAML may spell it
     assert PoseConfig(held_fit_scales=[2, 1]).validate().fit_config(held=True).scales == (2, 1)
     assert PoseConfig(held_fit_scales=(1,)).validate().fit_config(held=False).scales == (4, 2, 1)
     for bad in (0.0, -1e-3, float("nan"), True):
@@ -270,7 +271,8 @@ def test_fit_config_refuses_bad_settings():
     from rmavatar.evaluate.fit import PoseFitConfig
 
     for bad, match in (({"steps": 0}, "at least 1 step"), ({"refresh": 0}, "refresh"), ({"scales": (4, 0)}, "scales"),
-                       ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"smooth": -1}, "smoothing"),
+                       ({"scales": ()}, "scales"), ({"scales": (1.5,)}, "scales"), ({"scales": (True,)}, "fit.scales"),
+                       ({"scales": "4,2,1"}, "fit.scales"), ({"smooth": -1}, "smoothing"),
                        ({"smooth": 1.5}, "smoothing"), ({"prior": -0.1}, "fit.prior"),
                        ({"lr_rotation": -0.01}, "fit.lr_rotation"), ({"lr_translation": float("nan")}, "finite"),
                        ({"final_scale": 0.0}, "fit.final_scale"), ({"silhouette": float("inf")}, "finite")):

@@ -33,7 +33,16 @@ from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
 from rmavatar.render.camera import CameraTensors
 from rmavatar.render.composite import composite
 from rmavatar.utils import UserError
-from rmavatar.utils.config import check_fields
+from rmavatar.utils.config import check_fields, whole_number
+
+
+def pixel_blocks(value, name: str) -> tuple[int, ...]:
+    """``value`` (a pose fit's coarse-to-fine ``scales``) as a tuple of pixel-block sizes, each a whole
+    number >= 1; UserError naming the setting ``name`` otherwise."""
+    blocks = [whole_number(k, 1) for k in value] if isinstance(value, (list, tuple)) else []
+    if not blocks or None in blocks:
+        raise UserError(f"{name} must be a list of whole numbers of pixels >= 1, got {value!r}")
+    return tuple(blocks)
 
 
 @dataclass
@@ -71,8 +80,7 @@ class PoseFitConfig:
         # the rest: finite numbers of their types, and in range
         check_fields(self, "fit", at_least_one=("refresh",),
                      nonnegative=("lr_rotation", "lr_translation", "silhouette", "prior"), positive=("final_scale",))
-        if not self.scales or any(int(k) != k or k < 1 for k in self.scales):
-            raise UserError(f"fit.scales must be whole numbers >= 1, got {self.scales}")
+        self.scales = pixel_blocks(self.scales, "fit.scales")
         return self
 
     def protocol(self) -> dict:

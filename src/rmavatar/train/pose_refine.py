@@ -28,6 +28,7 @@ import torch
 
 from rmavatar.avatar.run import RunFolder
 from rmavatar.body import PoseSequence, pose_error, smooth_poses
+from rmavatar.evaluate.fit import PoseFitConfig, fit_poses, pixel_blocks
 from rmavatar.train.optim import position_lr
 from rmavatar.train.poses import PoseRefiner, read_poses, write_poses
 from rmavatar.utils import UserError, atomic_path
@@ -77,11 +78,7 @@ class PoseConfig:
             if bad or any(not 0 < f < 1 for f in value):
                 raise UserError(f"poses.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
-        blocks = self.held_fit_scales
-        if not isinstance(blocks, (list, tuple)) or not blocks or any(
-                isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in blocks):
-            raise UserError(f"poses.held_fit_scales must be whole numbers of pixels >= 1, got {blocks!r}")
-        self.held_fit_scales = tuple(blocks)
+        self.held_fit_scales = pixel_blocks(self.held_fit_scales, "poses.held_fit_scales")
         scale = self.first_pass_scale
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1:
             raise UserError(f"poses.first_pass_scale must be a fraction of the image size in (0, 1], got {scale!r}")
@@ -130,8 +127,6 @@ class PoseConfig:
 
     def fit_config(self, held: bool):
         """The :class:`rmavatar.evaluate.fit.PoseFitConfig` of this pass's pose fits."""
-        from rmavatar.evaluate.fit import PoseFitConfig
-
         if held:
             return PoseFitConfig(steps=self.held_fit_steps, silhouette=self.fit_mask, scales=self.held_fit_scales,
                                  lr_rotation=self.held_fit_lr_rotation, lr_translation=self.held_fit_lr_translation)
@@ -173,8 +168,6 @@ class PoseRefinement:
         corrected pose. Returns the poses to hold (second pass), else None."""
         if iteration not in self.fit_at:
             return None
-        from rmavatar.evaluate.fit import fit_poses
-
         n = len(self.refiner)
         if self.progress:
             what = "held pose fit" if self.held else "pose fit"
