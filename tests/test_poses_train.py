@@ -196,7 +196,7 @@ def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_
     mask 1 and its second pass has no refits (the defaults, 0 and [0.4, 0.7], would change both)."""
     import yaml
 
-    import rmavatar.evaluate.fit as fit_module
+    import rmavatar.train.pose_refine as pose_refine  # where the trainer calls fit_poses
     from rmavatar.utils.config import read_yaml
 
     cfg = _two_pass_cfg(noisy)
@@ -211,8 +211,8 @@ def test_a_two_pass_run_from_before_refits_resumes_as_it_was_trained(noisy, tmp_
                           pose_pass=poses["first_pass"], pose_sweeps=list(poses["fits"]),
                           pose_sweep_steps=poses["fit_steps"], pose_warmup=poses["warmup"])
     (run / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
-    fits, original_fit = [], fit_module.fit_poses
-    monkeypatch.setattr(fit_module, "fit_poses", lambda *a, **k: fits.append(a[6].silhouette) or original_fit(*a, **k))
+    fits, original_fit = [], pose_refine.fit_poses
+    monkeypatch.setattr(pose_refine, "fit_poses", lambda *a, **k: fits.append(a[6].silhouette) or original_fit(*a, **k))
     done = train(None, run, resume=True, progress=False)
     assert done.iteration == 8 and fits == [1.0]  # the first pass's one sweep; no refits
     final = _checkpoint(run).config["poses"]
@@ -418,7 +418,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     the frames closer to their images, the held bodies and face tables are posed again from them, and
     RUN/poses.npz and the trained avatar hold them. Stopped after the refit and resumed, the run ends
     bit-identical."""
-    import rmavatar.evaluate.fit as fit_module
+    import rmavatar.train.pose_refine as pose_refine  # where the trainer calls fit_poses
     from rmavatar.body import posed_vertices
 
     cfg = _two_pass_cfg(noisy)
@@ -429,7 +429,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
     cfg.poses.held_fit_scales = (2, 1)
     cfg.poses.fit_mask = 2.0
     seen, rates, holds = [], [], []
-    original_fit, original_hold = fit_module.fit_poses, FrameCache.hold
+    original_fit, original_hold = pose_refine.fit_poses, FrameCache.hold
 
     def record(refinement, iteration, before, after, avatar, body, frames):
         if refinement.held:
@@ -450,7 +450,7 @@ def test_a_refit_in_the_second_pass_fits_the_held_poses_again_and_resumes_bit_id
                       args[6].scales))
         return original_fit(*args, **kwargs)
 
-    monkeypatch.setattr(fit_module, "fit_poses", fit)
+    monkeypatch.setattr(pose_refine, "fit_poses", fit)
     monkeypatch.setattr(FrameCache, "hold", hold)
     _fits_seen(monkeypatch, record)
     whole = tmp_path / "whole"
