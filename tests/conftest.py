@@ -3,13 +3,26 @@ configs) are in ``helpers.py``; these fixtures hand out the factories and the sh
 
 from __future__ import annotations
 
+import random
+
+import numpy as np
 import pytest
+import torch
 from helpers import synth_subject, tiny_train_config
 
 from rmavatar.commands import main
 
 TRAINED_RUN_SIZE = 32  # the trained_run's image size
 TRAINED_RUN_ITERS = 10
+
+
+@pytest.fixture(autouse=True)
+def _same_global_generators():
+    """Every test starts from the same global generators (torch, numpy, random): one process runs them
+    all, so otherwise what a test draws from them depends on which tests ran before it."""
+    torch.manual_seed(0)
+    np.random.seed(0)
+    random.seed(0)
 
 
 @pytest.fixture(scope="session")
