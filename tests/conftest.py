@@ -16,13 +16,23 @@ TRAINED_RUN_SIZE = 32  # the trained_run's image size
 TRAINED_RUN_ITERS = 10
 
 
-@pytest.fixture(autouse=True)
-def _same_global_generators():
-    """Every test starts from the same global generators (torch, numpy, random): one process runs them
-    all, so otherwise what a test draws from them depends on which tests ran before it."""
+def _seed_global_generators() -> None:
     torch.manual_seed(0)
     np.random.seed(0)
     random.seed(0)
+
+
+# One process runs every test, so what a test or a fixture draws from the global generators (torch,
+# numpy, random) would otherwise depend on which tests ran before it. Each module's fixtures and each
+# test start from the same state (pytest sets up a module's fixtures before its tests' autouse ones).
+@pytest.fixture(scope="module", autouse=True)
+def _same_global_generators_per_module():
+    _seed_global_generators()
+
+
+@pytest.fixture(autouse=True)
+def _same_global_generators():
+    _seed_global_generators()
 
 
 @pytest.fixture(scope="session")
