@@ -137,7 +137,8 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
         with pytest.raises(UserError, match="poses.first_pass"):
             PoseConfig(first_pass=bad).validate()
     # The pose pass runs only with refinement, round(fraction * iters) long, at least one iteration.
-    assert PoseConfig().first_pass_iters(1000, True) == 500
+    assert PoseConfig().first_pass_iters(1000, True) == 100
+    assert PoseConfig(first_pass=0.5).first_pass_iters(1000, True) == 500
     assert PoseConfig().first_pass_iters(1000, False) == 0
     assert PoseConfig(first_pass=0.0).first_pass_iters(1000, True) == 0
     assert PoseConfig(first_pass=0.1).first_pass_iters(3, True) == 1
@@ -173,7 +174,7 @@ def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
     with pytest.raises(UserError, match="poses.refine"):
         load_config(tmp_path / "bad.yaml")
     save_config(cfg, tmp_path / "new.yaml")  # written stamped: read back as it is, also as a run's own
-    assert (tmp_path / "new.yaml").read_text().startswith("version: 6\n")
+    assert (tmp_path / "new.yaml").read_text().startswith("version: 7\n")
     assert to_dict(load_config(tmp_path / "new.yaml", as_trained=True)) == to_dict(cfg)
 
 
@@ -280,6 +281,33 @@ def test_fit_config_refuses_bad_settings():
             PoseFitConfig(**bad).validate()
     assert "4x4 then 2x2 then 1x1" in PoseFitConfig().protocol()["loss"]
     assert "0.01 x sum of the squared joint corrections" in PoseFitConfig().protocol()["loss"]
+
+
+def test_a_version_6_run_keeps_the_pose_refinement_defaults_it_was_trained_with(tmp_path):
+    """Version 7 changed the pose-refinement defaults: a run's own config of version 6 (as_trained; a
+    checkpoint's always) that lacks one of those settings reads with version 6's default; one it has
+    stays; a hand-written version 6 file, and any file of today's version, take today's defaults."""
+    from rmavatar.avatar.run import MIGRATIONS, POSE_DEFAULTS_V6, migrate_config
+
+    before = {"first_pass": 0.5, "fits": (0.2, 0.45), "fit_steps": 30, "held_fits": (0.4, 0.7), "held_fit_steps": 30,
+              "held_fit_scales": (4, 2, 1), "smooth_held": False}
+    assert POSE_DEFAULTS_V6 == before and all(getattr(PoseConfig(), k) != v for k, v in before.items())
+    v6 = {"poses": {"refine": True, "first_pass": 0.2}, "optim": {"iters": 10}}
+    trained = migrate_config(v6, 6, as_trained=True)["poses"]
+    assert trained == {**before, "refine": True, "first_pass": 0.2}
+    assert migrate_config(v6, 6, as_trained=False) == v6
+    assert migrate_config({"optim": {"iters": 10}}, 6, as_trained=True)["poses"] == before
+    assert migrate_config(v6, 7, as_trained=True) == v6
+    payload = {"version": 6, "config": v6, "iteration": 4}
+    assert MIGRATIONS[6](payload)["config"]["poses"]["held_fits"] == (0.4, 0.7)
+    assert payload["config"]["poses"] == {"refine": True, "first_pass": 0.2}  # the payload read is not changed
+    (tmp_path / "run_v6.yaml").write_text("version: 6\nposes:\n  refine: true\n")
+    cfg = load_config(tmp_path / "run_v6.yaml", as_trained=True)
+    assert cfg.poses.first_pass == 0.5 and cfg.poses.held_fit_scales == (4, 2, 1) and not cfg.poses.smooth_held
+    assert load_config(tmp_path / "run_v6.yaml").poses.held_fits == PoseConfig().held_fits
+    (tmp_path / "bad.yaml").write_text("version: 6\nposes: 3\n")  # not a section: refused, not replaced
+    with pytest.raises(UserError, match="poses"):
+        load_config(tmp_path / "bad.yaml", as_trained=True)
 
 
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():

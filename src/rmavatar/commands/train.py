@@ -40,11 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-scaling-loss", action="store_true", help="ablation: scaling regulariser weight 0")
     parser.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
                         help="learn per-frame corrections of the training poses: smoothed over +-2 frames, "
-                             "then refined by a first pass of half the iterations (RUN/pose_pass) that fits "
-                             "them to every training image at 20%% and 45%% of it, then the avatar is trained "
-                             "afresh on them for the full iterations and fits them again at 40%% and 70%% of it "
-                             "(poses.smooth, poses.fits, poses.first_pass, poses.held_fits; "
-                             "docs/train.md). "
+                             "then fitted to every training image near the end of a first pass of 10%% of "
+                             "the iterations (RUN/pose_pass); the avatar is then trained afresh on them for the "
+                             "full iterations and fits them again at 25%%, 60%% and 85%% of it (poses.smooth, "
+                             "poses.first_pass, poses.fits, poses.held_fits; docs/train.md). "
                              "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")
     parser.add_argument("--hand-pose", action=argparse.BooleanOptionalAction, default=None,

@@ -42,25 +42,25 @@ class PoseConfig:
     docs/train.md."""
 
     refine: bool | None = None  # refine the training poses; None = when the dataset's poses are estimated
-    first_pass: float = 0.5  # a first pass of this fraction of optim.iters refines the poses; 0 = one pass
+    first_pass: float = 0.1  # a first pass of this fraction of optim.iters refines the poses; 0 = one pass
     # --- advanced ---
     first_pass_scale: float = 1.0  # the first pass trains and fits at this fraction of the image size (>= 32 px)
     smooth: int = 2  # first average the given poses over +-this many video frames (tracker jitter); 0 = off
-    smooth_held: bool = False  # the second pass starts from the first pass's poses averaged the same way
+    smooth_held: bool = True  # the second pass starts from the first pass's poses averaged the same way
     warmup: float = 0.1  # fraction of a refining pass with frozen corrections (the avatar takes shape first)
     lr_rotation: float = 2e-2  # per-step corrections: radians per Adam step
     lr_translation: float = 5e-4  # per-step corrections: metres per Adam step
     lr_final_scale: float = 0.1  # both decay log-linearly to this fraction at the pass's last iteration
-    fits: tuple[float, ...] = (0.2, 0.45)  # fractions of a refining pass at which every training pose is fitted
-    fit_steps: int = 30  # Adam steps per frame in those fits
+    fits: tuple[float, ...] = (0.9,)  # fractions of a refining pass at which every training pose is fitted
+    fit_steps: int = 20  # Adam steps per frame in those fits
     fit_lr_rotation: float = 2e-2  # their rotation learning rate (radians per step)
     fit_lr_translation: float = 5e-4  # their translation learning rate (metres per step)
     fit_mask: float = 0.0  # weight of the alpha-vs-mask term in every pose fit; 0 = the images only
-    held_fits: tuple[float, ...] = (0.4, 0.7)  # fractions of the second pass (poses held) at which they are refitted
-    held_fit_steps: int = 30  # Adam steps per frame in those fits
+    held_fits: tuple[float, ...] = (0.25, 0.6, 0.85)  # fractions of the second pass (poses held) at which they are refitted
+    held_fit_steps: int = 20  # Adam steps per frame in those fits
     held_fit_lr_rotation: float = 5e-3  # their rotation learning rate: lower, the poses are nearly right
     held_fit_lr_translation: float = 1.25e-4  # their translation learning rate
-    held_fit_scales: tuple[int, ...] = (4, 2, 1)  # their coarse-to-fine pixel blocks (PoseFitConfig.scales)
+    held_fit_scales: tuple[int, ...] = (1,)  # their coarse-to-fine pixel blocks (PoseFitConfig.scales)
 
     def validate(self) -> "PoseConfig":
         check_fields(self, "poses", positive=("lr_final_scale", "held_fit_lr_rotation"),
