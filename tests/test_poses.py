@@ -153,7 +153,7 @@ def test_refine_poses_config_round_trips_and_resolves(tmp_path):
     (tmp_path / "fits.yaml").write_text("poses:\n  fits: [0.5, 0.8]\n")
     cfg = load_config(tmp_path / "fits.yaml").validate()
     assert cfg.poses.fits == (0.5, 0.8)
-    assert cfg.poses.fit_iterations(1000) == {500, 800}
+    assert cfg.poses.fit_iterations(1000, 40) == {500, 800}
 
 
 def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
@@ -174,7 +174,7 @@ def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
     with pytest.raises(UserError, match="poses.refine"):
         load_config(tmp_path / "bad.yaml")
     save_config(cfg, tmp_path / "new.yaml")  # written stamped: read back as it is, also as a run's own
-    assert (tmp_path / "new.yaml").read_text().startswith("version: 7\n")
+    assert (tmp_path / "new.yaml").read_text().startswith("version: 8\n")
     assert to_dict(load_config(tmp_path / "new.yaml", as_trained=True)) == to_dict(cfg)
 
 
@@ -186,9 +186,34 @@ def test_a_sweep_on_an_opacity_reset_runs_before_it():
     poses = PoseConfig(fits=(0.3, 0.45, 0.6, 0.75), held_fits=(0.5, 0.8)).validate()
     schedule = DensityConfig().schedule(1000)
     assert [s for s in range(1, 1001) if schedule.reset_at(s)] == [200, 300, 400, 500, 600]
-    assert poses.fit_iterations(1000, schedule) == {299, 450, 599, 750}
-    assert poses.fit_iterations(1000) == {300, 450, 600, 750}
-    assert poses.fit_iterations(1000, schedule, held=True) == {499, 800}  # the second pass's, the same rule
+    assert poses.fit_iterations(1000, 40, schedule) == {299, 450, 599, 750}
+    assert poses.fit_iterations(1000, 40) == {300, 450, 600, 750}
+    assert poses.fit_iterations(1000, 40, schedule, held=True) == {499, 800}  # the second pass's, the same rule
+
+
+def test_the_held_fits_by_default_are_three_and_five_in_a_long_run():
+    """poses.held_fits None (the default): five held fits from 3 x held_fit_steps x frames iterations of the
+    second pass (6,000 for 100 frames at 20 steps: five fits of 20 steps cost at most 5/3 frame-steps per
+    iteration), three before; a longer fit or more frames move the threshold; an explicit list is kept."""
+    from rmavatar.train.pose_refine import LONG_HELD_FITS, SHORT_HELD_FITS
+
+    cfg = PoseConfig().validate()
+    assert cfg.held_fits is None and cfg.held_fit_steps == 20
+    assert SHORT_HELD_FITS == (0.25, 0.6, 0.85) and LONG_HELD_FITS == (0.2, 0.4, 0.6, 0.8, 0.95)
+    assert cfg.held_fit_fractions(5999, 100) == SHORT_HELD_FITS
+    assert cfg.held_fit_fractions(6000, 100) == LONG_HELD_FITS
+    assert cfg.held_fit_fractions(6000, 101) == SHORT_HELD_FITS
+    assert cfg.held_fit_fractions(50_000, 40) == LONG_HELD_FITS
+    assert PoseConfig(held_fit_steps=40).held_fit_fractions(8000, 100) == SHORT_HELD_FITS
+    assert PoseConfig(held_fits=(0.5,)).validate().held_fit_fractions(50_000, 10) == (0.5,)
+    assert PoseConfig(held_fits=()).validate().held_fit_fractions(50_000, 10) == ()
+    assert cfg.fit_iterations(8000, 100, held=True) == {1600, 3200, 4800, 6400, 7600}
+    assert cfg.fit_iterations(4000, 100, held=True) == {1000, 2400, 3400}
+    assert cfg.fit_iterations(8000, 100) == {7200}  # the first pass's fits are not by length
+    # the strategy counts its training frames: 3 frames at 2 steps make 18 iterations a long second pass
+    short = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 17, "cpu", held=True)
+    long = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 18, "cpu", held=True)
+    assert short.fit_at == {4, 10, 14} and long.fit_at == {4, 7, 11, 14, 17}
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():
@@ -297,7 +322,7 @@ def test_a_version_6_run_keeps_the_pose_refinement_defaults_it_was_trained_with(
     assert trained == {**before, "refine": True, "first_pass": 0.2}
     assert migrate_config(v6, 6, as_trained=False) == v6
     assert migrate_config({"optim": {"iters": 10}}, 6, as_trained=True)["poses"] == before
-    assert migrate_config(v6, 7, as_trained=True) == v6
+    assert migrate_config(v6, 8, as_trained=True) == v6
     payload = {"version": 6, "config": v6, "iteration": 4}
     assert MIGRATIONS[6](payload)["config"]["poses"]["held_fits"] == (0.4, 0.7)
     assert payload["config"]["poses"] == {"refine": True, "first_pass": 0.2}  # the payload read is not changed
@@ -308,6 +333,27 @@ def test_a_version_6_run_keeps_the_pose_refinement_defaults_it_was_trained_with(
     (tmp_path / "bad.yaml").write_text("version: 6\nposes: 3\n")  # not a section: refused, not replaced
     with pytest.raises(UserError, match="poses"):
         load_config(tmp_path / "bad.yaml", as_trained=True)
+
+
+def test_a_version_7_run_keeps_its_three_held_fits(tmp_path):
+    """Version 8 made the held fits' default depend on the run's length (None): a run's own config of
+    version 7 that lacks poses.held_fits, and its checkpoint, read version 7's three; one it has stays; a
+    hand-written version 7 file, and a file of today's version, take today's default."""
+    from rmavatar.avatar.run import MIGRATIONS, POSE_DEFAULTS_V7, migrate_config
+
+    assert POSE_DEFAULTS_V7 == {"held_fits": (0.25, 0.6, 0.85)} and PoseConfig().held_fits is None
+    v7 = {"poses": {"refine": True}, "optim": {"iters": 8000}}
+    assert migrate_config(v7, 7, as_trained=True)["poses"] == {"refine": True, "held_fits": (0.25, 0.6, 0.85)}
+    assert migrate_config({"poses": {"held_fits": (0.5,)}}, 7, as_trained=True)["poses"]["held_fits"] == (0.5,)
+    assert migrate_config(v7, 7, as_trained=False) == v7 and migrate_config(v7, 8, as_trained=True) == v7
+    payload = {"version": 7, "config": v7, "iteration": 4}
+    assert MIGRATIONS[7](payload)["config"]["poses"]["held_fits"] == (0.25, 0.6, 0.85)
+    assert payload["config"] == v7  # the payload read is not changed
+    (tmp_path / "run_v7.yaml").write_text("version: 7\nposes:\n  refine: true\n")
+    assert load_config(tmp_path / "run_v7.yaml", as_trained=True).poses.held_fits == (0.25, 0.6, 0.85)
+    assert load_config(tmp_path / "run_v7.yaml").poses.held_fits is None
+    (tmp_path / "run_v8.yaml").write_text("version: 8\nposes:\n  held_fits: null\n")
+    assert load_config(tmp_path / "run_v8.yaml", as_trained=True).poses.held_fits is None
 
 
 def test_a_v3_checkpoint_reads_as_one_without_pose_corrections():

@@ -43,7 +43,7 @@ def test_a_v1_checkpoint_is_migrated(run_v1):
     raw = torch.load(RunFolder(run_v1).checkpoint, map_location="cpu", weights_only=True)
     assert raw["version"] == 1 and "seed" in raw["avatar"]["config"] and "betas" not in raw
     ckpt = read_checkpoint(RunFolder(run_v1).checkpoint)
-    assert CHECKPOINT_VERSION == 7
+    assert CHECKPOINT_VERSION == 8
     assert "seed" not in ckpt.avatar["config"] and ckpt.betas is None
     # v2 -> v3: the on/off rectifier switch became the design's name
     assert raw["avatar"]["config"]["rectifier"] is True and raw["config"]["model"]["rectifier"] is True

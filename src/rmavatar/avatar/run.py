@@ -40,7 +40,7 @@ LOCK = ".rmavatar-run.lock"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # The version of the checkpoint and of the training config's layout, raised together (the history is
 # in MIGRATIONS below).
-CHECKPOINT_VERSION = 7
+CHECKPOINT_VERSION = 8
 
 
 class RunFolder:
@@ -247,20 +247,21 @@ def _config_v5(config: dict, as_trained: bool) -> dict:
     return {**config, "loss": {"lpips_region": "frame", **(loss if isinstance(loss, dict) else {})}}
 
 
-# The pose-refinement defaults of version 6, those that version 7 changed (docs/train.md, "Pose
-# refinement"): a run's own config of version 6 that lacks one (added after version 6 began) was
-# trained with it.
+# The pose-refinement defaults that a version changed (docs/train.md, "Pose refinement"): a run's own
+# config of that version that lacks one (added after the version began) was trained with it.
 POSE_DEFAULTS_V6 = {"first_pass": 0.5, "fits": (0.2, 0.45), "fit_steps": 30, "held_fits": (0.4, 0.7),
                     "held_fit_steps": 30, "held_fit_scales": (4, 2, 1), "smooth_held": False}
+POSE_DEFAULTS_V7 = {"held_fits": (0.25, 0.6, 0.85)}  # version 8: five held fits in a long run
 
 
-def _config_v6(config: dict, as_trained: bool) -> dict:
-    """Version 7 changed the pose-refinement defaults (``POSE_DEFAULTS_V6``). ``as_trained``: a run's own
-    config, whose missing settings keep version 6's defaults (how it was trained); otherwise today's."""
+def _old_pose_defaults(config: dict, defaults: dict, as_trained: bool) -> dict:
+    """``config`` with its ``poses`` section's missing settings filled from ``defaults`` when
+    ``as_trained`` (a run's own config: how it was trained); otherwise, or when the section is not a
+    mapping (left for validation to refuse), unchanged: today's defaults apply."""
     poses = config.get("poses")
     if not as_trained or not (poses is None or isinstance(poses, dict)):
         return config
-    return {**config, "poses": {**POSE_DEFAULTS_V6, **(poses or {})}}
+    return {**config, "poses": {**defaults, **(poses or {})}}
 
 
 def _v1(payload: dict) -> dict:
@@ -303,11 +304,16 @@ def _v5(payload: dict) -> dict:
 
 
 def _v6(payload: dict) -> dict:
-    """Version 6: the pose-refinement defaults before version 7's (``_config_v6``)."""
-    return {**payload, "config": _config_v6(payload["config"], as_trained=True)}
+    """Version 6: the pose-refinement defaults before version 7's (``POSE_DEFAULTS_V6``)."""
+    return {**payload, "config": _old_pose_defaults(payload["config"], POSE_DEFAULTS_V6, as_trained=True)}
 
 
-MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6}  # version -> the step to version + 1
+def _v7(payload: dict) -> dict:
+    """Version 7: three held pose fits in every run (``POSE_DEFAULTS_V7``)."""
+    return {**payload, "config": _old_pose_defaults(payload["config"], POSE_DEFAULTS_V7, as_trained=True)}
+
+
+MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6, 7: _v7}  # version -> the step to version + 1
 
 
 def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
@@ -316,7 +322,7 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
     oldest layout whose keys it has (version 2's rectifier switch, version 4's pose settings in "optim"),
     as version 4 when ``as_trained`` (a run's own file), else as today's. ``as_trained``: settings newer
     than the file take the value that reproduces how its run was trained (version 5's: LPIPS on the
-    whole frame; version 6's: its pose-refinement defaults)."""
+    whole frame; versions 6 and 7: their pose-refinement defaults)."""
     if version is None:
         switch = (config.get("model") or {}).get("rectifier") is True
         old = any(k in (config.get("optim") or {}) for k in (*POSE_KEYS_V4, "pose_refit_lr"))
@@ -328,7 +334,9 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
     if version == 5:
         config, version = _config_v5(config, as_trained), 6
     if version == 6:
-        config, version = _config_v6(config, as_trained), 7
+        config, version = _old_pose_defaults(config, POSE_DEFAULTS_V6, as_trained), 7
+    if version == 7:
+        config, version = _old_pose_defaults(config, POSE_DEFAULTS_V7, as_trained), 8
     if version != CHECKPOINT_VERSION:
         raise UserError(f"config layout version {version}; this rmavatar reads versions up to "
                         f"{CHECKPOINT_VERSION} (a newer rmavatar wrote it)")

@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="learn per-frame corrections of the training poses: smoothed over +-2 frames, "
                              "then fitted to every training image near the end of a first pass of 10%% of "
                              "the iterations (RUN/pose_pass); the avatar is then trained afresh on them for the "
-                             "full iterations and fits them again at 25%%, 60%% and 85%% of it (poses.smooth, "
+                             "full iterations and fits them again at 25%%, 60%% and 85%% of it (five times, "
+                             "at 20%%, 40%%, 60%%, 80%% and 95%%, from 60 iterations per training frame; poses.smooth, "
                              "poses.first_pass, poses.fits, poses.held_fits; docs/train.md). "
                              "Default: on when the dataset's poses are "
                              "estimated, as rmavatar capture's are; off otherwise")

@@ -88,8 +88,10 @@ def _train(cfg: TrainConfig | None, run: RunFolder, resume: bool, data: str | No
     _start(cfg, run, ckpt is not None)
     if first is not None and (first_ckpt is None or first_ckpt.iteration < first.optim.iters):
         if progress:
+            held = cfg.poses.held_fit_fractions(cfg.optim.iters, dataset.num_frames(cfg.data.split))
             print(f"pose pass: {first.optim.iters} iterations refine the training poses ({run.pose_pass.path}), "
-                  f"then the avatar is trained afresh on them for {cfg.optim.iters}", flush=True)
+                  f"then the avatar is trained afresh on them for {cfg.optim.iters}, fitting them again "
+                  f"{len(held)} times", flush=True)
         _start(first, run.pose_pass, first_ckpt is not None)
         # a first pass at a smaller size (poses.first_pass_scale) reads the frames at its own size
         own = dataset if first.data.size == cfg.data.size else None

@@ -10,7 +10,8 @@ a frame's correction otherwise moves only on the ~1 in n steps that sample it.
 Two passes (``poses.first_pass``): a first run of that fraction of the iterations refines the poses (in
 RUN/pose_pass, a run folder of its own); then the avatar is trained afresh on those poses, *held*
 (``held=True``: no per-step corrections; with ``poses.smooth_held`` first averaged over neighbouring
-frames, as the given poses are), fitting them again at ``poses.held_fits`` of the second pass.
+frames, as the given poses are), fitting them again at ``poses.held_fits`` of the second pass (by
+default three fits, five in a run long enough that they cost little: :meth:`PoseConfig.held_fit_fractions`).
 
 The trainer's hooks, in the order it calls them: :meth:`PoseRefinement.start_poses` (the poses the held
 bodies start from), :meth:`before_step` (a pose fit when one is due; returns poses to hold),
@@ -35,6 +36,14 @@ from rmavatar.utils import UserError, atomic_path
 from rmavatar.utils.config import check_fields
 
 
+# The held fits by default (``poses.held_fits: null``): three, or five where the run is long enough that
+# five cost at most 5/3 fitting frame-steps per training iteration (docs/train.md, "The defaults of
+# version 8"): the later fits close part of the gap to the true-pose avatar that grows with the run.
+SHORT_HELD_FITS = (0.25, 0.6, 0.85)
+LONG_HELD_FITS = (0.2, 0.4, 0.6, 0.8, 0.95)
+LONG_RUN_ITERS_PER_FIT_STEP = 3  # a run is long from this many iterations per frame-step of one held fit
+
+
 @dataclass
 class PoseConfig:
     """Pose refinement (``TrainConfig.poses``): per-frame corrections of the training poses.
@@ -56,7 +65,7 @@ class PoseConfig:
     fit_lr_rotation: float = 2e-2  # their rotation learning rate (radians per step)
     fit_lr_translation: float = 5e-4  # their translation learning rate (metres per step)
     fit_mask: float = 0.0  # weight of the alpha-vs-mask term in every pose fit; 0 = the images only
-    held_fits: tuple[float, ...] = (0.25, 0.6, 0.85)  # fractions of the second pass (poses held) at which they are refitted
+    held_fits: tuple[float, ...] | None = None  # fractions of the second pass (poses held) at which they are refitted; None = 3 or, in a long run, 5
     held_fit_steps: int = 20  # Adam steps per frame in those fits
     held_fit_lr_rotation: float = 5e-3  # their rotation learning rate: lower, the poses are nearly right
     held_fit_lr_translation: float = 1.25e-4  # their translation learning rate
@@ -73,6 +82,8 @@ class PoseConfig:
             raise UserError(f"poses.warmup must be in [0, 1), got {self.warmup}")
         for name in ("fits", "held_fits"):
             value = getattr(self, name)
+            if value is None and name == "held_fits":
+                continue
             bad = not isinstance(value, (list, tuple)) or any(
                 isinstance(f, bool) or not isinstance(f, (int, float)) for f in value)
             if bad or any(not 0 < f < 1 for f in value):
@@ -116,13 +127,25 @@ class PoseConfig:
             return 0.0
         return position_lr(iteration - start, iters - start, 1.0, self.lr_final_scale)
 
-    def fit_iterations(self, iters: int, schedule=None, held: bool = False) -> set[int]:
-        """The iteration counts after which the training poses are fitted (before the next step): at
-        ``fits`` (``held_fits`` when ``held``) of a run of ``iters``, each that falls on an opacity reset
-        of ``schedule`` (a density DensitySchedule; None: no density control) one earlier: right after a
-        reset the avatar is nearly invisible and fitting to its renders learns little (docs/train.md)."""
+    def held_fit_fractions(self, iters: int, frames: int) -> tuple[float, ...]:
+        """The fractions of a second pass of ``iters`` over ``frames`` training frames at which its poses
+        are refitted: ``held_fits``, or where that is None :data:`LONG_HELD_FITS` when ``iters`` is at
+        least ``LONG_RUN_ITERS_PER_FIT_STEP * held_fit_steps * frames`` (6,000 for 100 frames at 20
+        steps), else :data:`SHORT_HELD_FITS`."""
+        if self.held_fits is not None:
+            return self.held_fits
+        long = iters >= LONG_RUN_ITERS_PER_FIT_STEP * self.held_fit_steps * frames
+        return LONG_HELD_FITS if long else SHORT_HELD_FITS
+
+    def fit_iterations(self, iters: int, frames: int, schedule=None, held: bool = False) -> set[int]:
+        """The iteration counts after which the ``frames`` training poses are fitted (before the next
+        step): at ``fits`` (:meth:`held_fit_fractions` when ``held``) of a run of ``iters``, each that falls
+        on an opacity reset of ``schedule`` (a density DensitySchedule; None: no density control) one
+        earlier: right after a reset the avatar is nearly invisible and fitting to its renders learns
+        little (docs/train.md)."""
         on_reset = (lambda s: False) if schedule is None else schedule.reset_at
-        planned = (max(1, round(f * iters)) for f in (self.held_fits if held else self.fits))
+        fractions = self.held_fit_fractions(iters, frames) if held else self.fits
+        planned = (max(1, round(f * iters)) for f in fractions)
         return {s - 1 if s > 1 and on_reset(s) else s for s in planned}
 
     def fit_config(self, held: bool):
@@ -138,7 +161,7 @@ class PoseConfig:
         """The strategy for a pass of ``iters`` over the training ``poses`` (betas [n,nb] or None);
         ``held``: the second of two passes; ``schedule``: the density schedule (fits avoid its resets)."""
         return PoseRefinement(self, PoseRefiner(poses, betas, self, iters, device, frozen=held),
-                              self.fit_iterations(iters, schedule, held), progress)
+                              self.fit_iterations(iters, len(poses), schedule, held), progress)
 
 
 class PoseRefinement:
