@@ -367,3 +367,6 @@ def test_older_runs_keep_lpips_on_the_whole_frame(tmp_path):
     assert (tmp_path / "again.yaml").read_text().startswith("version: 8\n")
     again = load_config(tmp_path / "again.yaml", as_trained=True)
     assert again.loss.lpips_region == "frame" and to_dict(again) == to_dict(cfg)
+    (tmp_path / "bad.yaml").write_text("version: 5\nloss: 3\n")  # not a section: refused, not replaced
+    with pytest.raises(UserError, match="loss"):
+        load_config(tmp_path / "bad.yaml", as_trained=True)

@@ -238,30 +238,27 @@ def _config_v4(config: dict, as_trained: bool) -> dict:
     return out
 
 
-def _config_v5(config: dict, as_trained: bool) -> dict:
-    """Version 5's config had no ``loss.lpips_region``: LPIPS was on the whole frame. ``as_trained``: a
-    run's own config, which keeps that ("frame"); otherwise today's default stays."""
-    if not as_trained:
-        return config
-    loss = config.get("loss")
-    return {**config, "loss": {"lpips_region": "frame", **(loss if isinstance(loss, dict) else {})}}
-
-
-# The pose-refinement defaults that a version changed (docs/train.md, "Pose refinement"): a run's own
-# config of that version that lacks one (added after the version began) was trained with it.
+# The defaults a run of a version was trained with, for the settings a later version added or changed
+# (docs/train.md): version -> (the config section, {setting: value}). Version 5 had no
+# loss.lpips_region (LPIPS on the whole frame); version 6's pose-refinement defaults, which version 7
+# changed; version 7's three held fits in every run, which version 8 made depend on the run's length.
 POSE_DEFAULTS_V6 = {"first_pass": 0.5, "fits": (0.2, 0.45), "fit_steps": 30, "held_fits": (0.4, 0.7),
                     "held_fit_steps": 30, "held_fit_scales": (4, 2, 1), "smooth_held": False}
-POSE_DEFAULTS_V7 = {"held_fits": (0.25, 0.6, 0.85)}  # version 8: five held fits in a long run
+POSE_DEFAULTS_V7 = {"held_fits": (0.25, 0.6, 0.85)}
+TRAINED_DEFAULTS = {5: ("loss", {"lpips_region": "frame"}), 6: ("poses", POSE_DEFAULTS_V6),
+                    7: ("poses", POSE_DEFAULTS_V7)}
 
 
-def _old_pose_defaults(config: dict, defaults: dict, as_trained: bool) -> dict:
-    """``config`` with its ``poses`` section's missing settings filled from ``defaults`` when
-    ``as_trained`` (a run's own config: how it was trained); otherwise, or when the section is not a
-    mapping (left for validation to refuse), unchanged: today's defaults apply."""
-    poses = config.get("poses")
-    if not as_trained or not (poses is None or isinstance(poses, dict)):
+def _trained_defaults(config: dict, version: int, as_trained: bool) -> dict:
+    """``config`` of ``version`` (a key of :data:`TRAINED_DEFAULTS`) read as the next version: when
+    ``as_trained`` (a run's own config) the section's missing settings take the values its run was
+    trained with; otherwise, or when the section is not a mapping (left for validation to refuse),
+    unchanged: today's defaults apply."""
+    name, defaults = TRAINED_DEFAULTS[version]
+    section = config.get(name)
+    if not as_trained or not (section is None or isinstance(section, dict)):
         return config
-    return {**config, "poses": {**defaults, **(poses or {})}}
+    return {**config, name: {**defaults, **(section or {})}}
 
 
 def _v1(payload: dict) -> dict:
@@ -298,22 +295,13 @@ def _v4(payload: dict) -> dict:
     return {**payload, "config": _config_v4(payload["config"], as_trained=True)}
 
 
-def _v5(payload: dict) -> dict:
-    """Version 5: LPIPS was taken on the whole frame (no ``loss.lpips_region``)."""
-    return {**payload, "config": _config_v5(payload["config"], as_trained=True)}
+def _trained_defaults_step(version: int):
+    """The checkpoint migration of a version of :data:`TRAINED_DEFAULTS`: its config as trained."""
+    return lambda payload: {**payload, "config": _trained_defaults(payload["config"], version, as_trained=True)}
 
 
-def _v6(payload: dict) -> dict:
-    """Version 6: the pose-refinement defaults before version 7's (``POSE_DEFAULTS_V6``)."""
-    return {**payload, "config": _old_pose_defaults(payload["config"], POSE_DEFAULTS_V6, as_trained=True)}
-
-
-def _v7(payload: dict) -> dict:
-    """Version 7: three held pose fits in every run (``POSE_DEFAULTS_V7``)."""
-    return {**payload, "config": _old_pose_defaults(payload["config"], POSE_DEFAULTS_V7, as_trained=True)}
-
-
-MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6, 7: _v7}  # version -> the step to version + 1
+MIGRATIONS = {1: _v1, 2: _v2, 3: _v3, 4: _v4,  # version -> the step to version + 1
+              **{version: _trained_defaults_step(version) for version in TRAINED_DEFAULTS}}
 
 
 def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
@@ -321,8 +309,7 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
     unknown (a hand-written file, or RUN/config.yaml written before configs were stamped): read as the
     oldest layout whose keys it has (version 2's rectifier switch, version 4's pose settings in "optim"),
     as version 4 when ``as_trained`` (a run's own file), else as today's. ``as_trained``: settings newer
-    than the file take the value that reproduces how its run was trained (version 5's: LPIPS on the
-    whole frame; versions 6 and 7: their pose-refinement defaults)."""
+    than the file take the value that reproduces how its run was trained (:data:`TRAINED_DEFAULTS`)."""
     if version is None:
         switch = (config.get("model") or {}).get("rectifier") is True
         old = any(k in (config.get("optim") or {}) for k in (*POSE_KEYS_V4, "pose_refit_lr"))
@@ -331,12 +318,8 @@ def migrate_config(config: dict, version: int | None, as_trained: bool) -> dict:
         config, version = _config_v2(config), 4  # version 3's config is version 4's
     if version == 4:
         config, version = _config_v4(config, as_trained), 5
-    if version == 5:
-        config, version = _config_v5(config, as_trained), 6
-    if version == 6:
-        config, version = _old_pose_defaults(config, POSE_DEFAULTS_V6, as_trained), 7
-    if version == 7:
-        config, version = _old_pose_defaults(config, POSE_DEFAULTS_V7, as_trained), 8
+    while version in TRAINED_DEFAULTS:
+        config, version = _trained_defaults(config, version, as_trained), version + 1
     if version != CHECKPOINT_VERSION:
         raise UserError(f"config layout version {version}; this rmavatar reads versions up to "
                         f"{CHECKPOINT_VERSION} (a newer rmavatar wrote it)")
