@@ -214,6 +214,9 @@ def test_the_held_fits_by_default_are_three_and_five_in_a_long_run():
     short = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 17, "cpu", held=True)
     long = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 18, "cpu", held=True)
     assert short.fit_at == {4, 10, 14} and long.fit_at == {4, 7, 11, 14, 17}
+    # a fit that rounds to a short pass's last iteration runs before that step (after it none would)
+    assert cfg.fit_iterations(4, 3) == {3} and cfg.fit_iterations(2, 3) == {1} and cfg.fit_iterations(1, 3) == {1}
+    assert cfg.fit_iterations(5, 3, held=True) == {1, 3, 4}
 
 
 def test_pose_lr_schedule_is_frozen_then_decays():

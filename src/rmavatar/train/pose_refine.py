@@ -139,13 +139,14 @@ class PoseConfig:
 
     def fit_iterations(self, iters: int, frames: int, schedule=None, held: bool = False) -> set[int]:
         """The iteration counts after which the ``frames`` training poses are fitted (before the next
-        step): at ``fits`` (:meth:`held_fit_fractions` when ``held``) of a run of ``iters``, each that falls
-        on an opacity reset of ``schedule`` (a density DensitySchedule; None: no density control) one
-        earlier: right after a reset the avatar is nearly invisible and fitting to its renders learns
-        little (docs/train.md)."""
+        step): at ``fits`` (:meth:`held_fit_fractions` when ``held``) of a run of ``iters`` (at most
+        ``iters - 1``, the last before which a fit can run), each that falls on an opacity reset of
+        ``schedule`` (a density DensitySchedule; None: no density control) one earlier: right after a
+        reset the avatar is nearly invisible and fitting to its renders learns little (docs/train.md)."""
         on_reset = (lambda s: False) if schedule is None else schedule.reset_at
         fractions = self.held_fit_fractions(iters, frames) if held else self.fits
-        planned = (max(1, round(f * iters)) for f in fractions)
+        # a fit comes before a step, so one that rounds to the last iteration runs before it instead
+        planned = (min(max(1, round(f * iters)), max(1, iters - 1)) for f in fractions)
         return {s - 1 if s > 1 and on_reset(s) else s for s in planned}
 
     def fit_config(self, held: bool):
