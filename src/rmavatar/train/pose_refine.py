@@ -65,7 +65,7 @@ class PoseConfig:
     fit_lr_rotation: float = 2e-2  # their rotation learning rate (radians per step)
     fit_lr_translation: float = 5e-4  # their translation learning rate (metres per step)
     fit_mask: float = 0.0  # weight of the alpha-vs-mask term in every pose fit; 0 = the images only
-    held_fits: tuple[float, ...] | None = None  # fractions of the second pass (poses held) at which they are refitted; None = 3 or, in a long run, 5
+    held_fits: tuple[float, ...] | None = None  # fractions of the second pass (poses held) at which they are refitted; None: 3 or 5 by length
     held_fit_steps: int = 20  # Adam steps per frame in those fits
     held_fit_lr_rotation: float = 5e-3  # their rotation learning rate: lower, the poses are nearly right
     held_fit_lr_translation: float = 1.25e-4  # their translation learning rate
