@@ -344,7 +344,7 @@ def test_older_runs_keep_lpips_on_the_whole_frame(tmp_path):
     """Version 6 added loss.lpips_region: a run's own config of an older layout (as_trained; a
     checkpoint's always) reads as "frame", how it was trained; a hand-written older file takes today's
     default; a config written now keeps its value."""
-    assert CHECKPOINT_VERSION == 8
+    assert CHECKPOINT_VERSION == 9
     v5 = {"loss": {"lpips": 0.05}, "optim": {"iters": 10}}
     assert migrate_config(v5, 5, as_trained=True)["loss"] == {"lpips_region": "frame", "lpips": 0.05}
     assert migrate_config(v5, 5, as_trained=False) == v5
@@ -352,7 +352,7 @@ def test_older_runs_keep_lpips_on_the_whole_frame(tmp_path):
     assert migrate_config({}, None, as_trained=True)["loss"]["lpips_region"] == "frame"  # unstamped: v4
     assert migrate_config({}, None, as_trained=False) == {}  # unstamped, hand-written: today's
     now = {"loss": {"lpips_region": "person"}}
-    assert migrate_config(now, 8, as_trained=True) == now
+    assert migrate_config(now, CHECKPOINT_VERSION, as_trained=True) == now
     assert migrate_config(now, 6, as_trained=True)["loss"] == now["loss"]
     payload = {"version": 5, "config": v5, "iteration": 3}
     migrated = MIGRATIONS[5](payload)
@@ -364,7 +364,7 @@ def test_older_runs_keep_lpips_on_the_whole_frame(tmp_path):
     assert load_config(tmp_path / "run_v5.yaml").loss.lpips_region == LossConfig().lpips_region  # today's
     cfg = load_config(tmp_path / "run_v5.yaml", as_trained=True)
     save_config(cfg, tmp_path / "again.yaml")
-    assert (tmp_path / "again.yaml").read_text().startswith("version: 8\n")
+    assert (tmp_path / "again.yaml").read_text().startswith(f"version: {CHECKPOINT_VERSION}\n")
     again = load_config(tmp_path / "again.yaml", as_trained=True)
     assert again.loss.lpips_region == "frame" and to_dict(again) == to_dict(cfg)
     (tmp_path / "bad.yaml").write_text("version: 5\nloss: 3\n")  # not a section: refused, not replaced

@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections, joint_angle_errors, pose_error
+from rmavatar.avatar.run import CHECKPOINT_VERSION
 from rmavatar.body.corrections import pose_corrections
 from rmavatar.train.config import TrainConfig, from_dict, load_config, save_config, to_dict
 from rmavatar.train.pose_refine import PoseConfig
@@ -174,7 +175,7 @@ def test_a_config_file_of_the_old_layout_is_read_in_the_new_one(tmp_path):
     with pytest.raises(UserError, match="poses.refine"):
         load_config(tmp_path / "bad.yaml")
     save_config(cfg, tmp_path / "new.yaml")  # written stamped: read back as it is, also as a run's own
-    assert (tmp_path / "new.yaml").read_text().startswith("version: 8\n")
+    assert (tmp_path / "new.yaml").read_text().startswith(f"version: {CHECKPOINT_VERSION}\n")
     assert to_dict(load_config(tmp_path / "new.yaml", as_trained=True)) == to_dict(cfg)
 
 
@@ -211,8 +212,8 @@ def test_the_held_fits_by_default_are_three_and_five_in_a_long_run():
     assert cfg.fit_iterations(4000, 100, held=True) == {1000, 2400, 3400}
     assert cfg.fit_iterations(8000, 100) == {7200}  # the first pass's fits are not by length
     # the strategy counts its training frames: 3 frames at 2 steps make 18 iterations a long second pass
-    short = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 17, "cpu", held=True)
-    long = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, 18, "cpu", held=True)
+    short = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, range(3), 17, "cpu", held=True)
+    long = PoseConfig(held_fit_steps=2).validate().build(_random_poses(3), None, range(3), 18, "cpu", held=True)
     assert short.fit_at == {4, 10, 14} and long.fit_at == {4, 7, 11, 14, 17}
     # a fit that rounds to a short pass's last iteration runs before that step (after it none would)
     assert cfg.fit_iterations(4, 3) == {3} and cfg.fit_iterations(2, 3) == {1} and cfg.fit_iterations(1, 3) == {1}
@@ -315,17 +316,17 @@ def test_a_version_6_run_keeps_the_pose_refinement_defaults_it_was_trained_with(
     """Version 7 changed the pose-refinement defaults: a run's own config of version 6 (as_trained; a
     checkpoint's always) that lacks one of those settings reads with version 6's default; one it has
     stays; a hand-written version 6 file, and any file of today's version, take today's defaults."""
-    from rmavatar.avatar.run import MIGRATIONS, POSE_DEFAULTS_V6, migrate_config
+    from rmavatar.avatar.run import MIGRATIONS, POSE_DEFAULTS_V6, POSE_DEFAULTS_V8, migrate_config
 
     before = {"first_pass": 0.5, "fits": (0.2, 0.45), "fit_steps": 30, "held_fits": (0.4, 0.7), "held_fit_steps": 30,
               "held_fit_scales": (4, 2, 1), "smooth_held": False}
     assert POSE_DEFAULTS_V6 == before and all(getattr(PoseConfig(), k) != v for k, v in before.items())
     v6 = {"poses": {"refine": True, "first_pass": 0.2}, "optim": {"iters": 10}}
     trained = migrate_config(v6, 6, as_trained=True)["poses"]
-    assert trained == {**before, "refine": True, "first_pass": 0.2}
+    assert trained == {**before, "refine": True, "first_pass": 0.2, **POSE_DEFAULTS_V8}  # and version 8's
     assert migrate_config(v6, 6, as_trained=False) == v6
-    assert migrate_config({"optim": {"iters": 10}}, 6, as_trained=True)["poses"] == before
-    assert migrate_config(v6, 8, as_trained=True) == v6
+    assert migrate_config({"optim": {"iters": 10}}, 6, as_trained=True)["poses"] == {**before, **POSE_DEFAULTS_V8}
+    assert migrate_config(v6, CHECKPOINT_VERSION, as_trained=True) == v6
     payload = {"version": 6, "config": v6, "iteration": 4}
     assert MIGRATIONS[6](payload)["config"]["poses"]["held_fits"] == (0.4, 0.7)
     assert payload["config"]["poses"] == {"refine": True, "first_pass": 0.2}  # the payload read is not changed
@@ -346,9 +347,10 @@ def test_a_version_7_run_keeps_its_three_held_fits(tmp_path):
 
     assert POSE_DEFAULTS_V7 == {"held_fits": (0.25, 0.6, 0.85)} and PoseConfig().held_fits is None
     v7 = {"poses": {"refine": True}, "optim": {"iters": 8000}}
-    assert migrate_config(v7, 7, as_trained=True)["poses"] == {"refine": True, "held_fits": (0.25, 0.6, 0.85)}
+    assert migrate_config(v7, 7, as_trained=True)["poses"] == {"refine": True, "held_fits": (0.25, 0.6, 0.85),
+                                                               "held_fit_prior": 0.01, "held_fit_anchor": "start"}
     assert migrate_config({"poses": {"held_fits": (0.5,)}}, 7, as_trained=True)["poses"]["held_fits"] == (0.5,)
-    assert migrate_config(v7, 7, as_trained=False) == v7 and migrate_config(v7, 8, as_trained=True) == v7
+    assert migrate_config(v7, 7, as_trained=False) == v7 and migrate_config(v7, 9, as_trained=True) == v7
     payload = {"version": 7, "config": v7, "iteration": 4}
     assert MIGRATIONS[7](payload)["config"]["poses"]["held_fits"] == (0.25, 0.6, 0.85)
     assert payload["config"] == v7  # the payload read is not changed
@@ -398,3 +400,26 @@ def test_smoothing_removes_jitter_but_keeps_fast_motion():
     assert pose_error(kept, turning)["joint_angle_deg"] < 0.05
     with pytest.raises(ValueError, match="frame_ids"):
         smooth_poses(noisy, range(n - 1), 2)
+
+
+def test_a_version_8_run_keeps_its_held_fits_prior(tmp_path):
+    """Version 9 pulls the held fits' joints toward their neighbours' average at prior 0.1: a run's own
+    config of version 8 and its checkpoint read version 8's pull toward the fit's start at 0.01; a
+    hand-written version 8 file takes today's; an unknown anchor is refused, naming the setting."""
+    from rmavatar.avatar.run import MIGRATIONS, POSE_DEFAULTS_V8, migrate_config
+
+    assert POSE_DEFAULTS_V8 == {"held_fit_prior": 0.01, "held_fit_anchor": "start"}
+    today = PoseConfig()
+    assert (today.held_fit_prior, today.held_fit_anchor) == (0.1, "neighbours")
+    assert (today.fit_config(held=True).prior, today.fit_config(held=False).prior) == (0.1, 0.01)
+    v8 = {"poses": {"refine": True}}
+    assert migrate_config(v8, 8, as_trained=True)["poses"] == {"refine": True, **POSE_DEFAULTS_V8}
+    assert MIGRATIONS[8]({"version": 8, "config": v8})["config"]["poses"]["held_fit_anchor"] == "start"
+    (tmp_path / "run_v8.yaml").write_text("version: 8\nposes:\n  refine: true\n")
+    old = load_config(tmp_path / "run_v8.yaml", as_trained=True).poses
+    assert (old.held_fit_prior, old.held_fit_anchor, old.fit_config(held=True).prior) == (0.01, "start", 0.01)
+    assert load_config(tmp_path / "run_v8.yaml").poses.held_fit_anchor == "neighbours"
+    with pytest.raises(UserError, match="poses.held_fit_anchor"):
+        PoseConfig(held_fit_anchor="mean").validate()
+    with pytest.raises(UserError, match="held_fit_prior"):
+        PoseConfig(held_fit_prior=-1.0).validate()

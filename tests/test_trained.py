@@ -43,17 +43,18 @@ def test_a_v1_checkpoint_is_migrated(run_v1):
     raw = torch.load(RunFolder(run_v1).checkpoint, map_location="cpu", weights_only=True)
     assert raw["version"] == 1 and "seed" in raw["avatar"]["config"] and "betas" not in raw
     ckpt = read_checkpoint(RunFolder(run_v1).checkpoint)
-    assert CHECKPOINT_VERSION == 8
+    assert CHECKPOINT_VERSION == 9
     assert "seed" not in ckpt.avatar["config"] and ckpt.betas is None
     # v2 -> v3: the on/off rectifier switch became the design's name
     assert raw["avatar"]["config"]["rectifier"] is True and raw["config"]["model"]["rectifier"] is True
     assert ckpt.avatar["config"]["rectifier"] == ckpt.config["model"]["rectifier"] == "paper"
     assert ckpt.poses is None  # v3 -> v4: trained without pose refinement
     # v4 -> v5: pose refinement's settings have their own section, as this run was trained (none)
-    # (v6 -> v7: and the pose-refinement defaults of then for the settings it lacks)
+    # (v6 -> v7 and v8 -> v9: and the pose-refinement defaults of then for the settings it lacks)
     assert ckpt.config["poses"] == {"smooth": 0, "fits": (), "first_pass": 0.0, "held_fits": (), "fit_mask": 1.0,
                                     "fit_lr_rotation": 2e-2, "fit_lr_translation": 5e-4, "fit_steps": 30,
-                                    "held_fit_steps": 30, "held_fit_scales": (4, 2, 1), "smooth_held": False}
+                                    "held_fit_steps": 30, "held_fit_scales": (4, 2, 1), "smooth_held": False,
+                                    "held_fit_prior": 0.01, "held_fit_anchor": "start"}
     # v5 -> v6: LPIPS on the whole frame, as every run before the person's window was trained
     assert ckpt.config["loss"]["lpips_region"] == "frame" and "lpips_region" not in raw["config"]["loss"]
     # everything else is carried over untouched

@@ -40,7 +40,7 @@ LOCK = ".rmavatar-run.lock"
 CHECKPOINT_FORMAT = "rmavatar-checkpoint"
 # The version of the checkpoint and of the training config's layout, raised together (the history is
 # in MIGRATIONS below).
-CHECKPOINT_VERSION = 8
+CHECKPOINT_VERSION = 9
 
 
 class RunFolder:
@@ -241,12 +241,14 @@ def _config_v4(config: dict, as_trained: bool) -> dict:
 # The defaults a run of a version was trained with, for the settings a later version added or changed
 # (docs/train.md): version -> (the config section, {setting: value}). Version 5 had no
 # loss.lpips_region (LPIPS on the whole frame); version 6's pose-refinement defaults, which version 7
-# changed; version 7's three held fits in every run, which version 8 made depend on the run's length.
+# changed; version 7's three held fits in every run, which version 8 made depend on the run's length;
+# version 8's held fits pulled toward their start at the fit's own prior, version 9 toward the neighbours.
 POSE_DEFAULTS_V6 = {"first_pass": 0.5, "fits": (0.2, 0.45), "fit_steps": 30, "held_fits": (0.4, 0.7),
                     "held_fit_steps": 30, "held_fit_scales": (4, 2, 1), "smooth_held": False}
 POSE_DEFAULTS_V7 = {"held_fits": (0.25, 0.6, 0.85)}
+POSE_DEFAULTS_V8 = {"held_fit_prior": 0.01, "held_fit_anchor": "start"}
 TRAINED_DEFAULTS = {5: ("loss", {"lpips_region": "frame"}), 6: ("poses", POSE_DEFAULTS_V6),
-                    7: ("poses", POSE_DEFAULTS_V7)}
+                    7: ("poses", POSE_DEFAULTS_V7), 8: ("poses", POSE_DEFAULTS_V8)}
 
 
 def _trained_defaults(config: dict, version: int, as_trained: bool) -> dict:

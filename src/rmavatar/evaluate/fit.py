@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from rmavatar.avatar.frame import render_frame
 from rmavatar.avatar.model import drawable_copy
 from rmavatar.body import CORRECTION_DIM, PoseSequence, apply_pose_corrections
-from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step
+from rmavatar.body.corrections import NUM_JOINTS, correction_adam_step, pose_corrections
 from rmavatar.render.camera import CameraTensors
 from rmavatar.render.composite import composite
 from rmavatar.utils import UserError
@@ -56,9 +56,9 @@ class PoseFitConfig:
     lr_translation: float = 5e-4  # learning rate of the translation, metres per step
     final_scale: float = 0.1  # both learning rates decay linearly to this fraction of themselves
     silhouette: float = 1.0  # weight of the |alpha - mask| term beside the RGB term
-    # Weight of sum_j |delta_j|^2 (rad^2) per frame, pulling each joint's correction back to zero: Adam
-    # scales every joint's step to the learning rate however faint its gradient, so the joints the image
-    # hardly sees (feet, hands) would wander without it.
+    # Weight of sum_j |delta_j|^2 (rad^2) per frame, pulling each joint's rotation back to where it
+    # started (or to fit_poses's anchor): Adam scales every joint's step to the learning rate however
+    # faint its gradient, so the joints the image hardly sees (feet, hands) would wander without it.
     prior: float = 0.01
     # Coarse to fine: the images are compared averaged over k x k pixel blocks, each k for an equal share
     # of the steps, so that a limb several pixels off still gets a gradient from the coarse ones.
@@ -97,14 +97,16 @@ class PoseFitConfig:
 
 
 def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, background: torch.Tensor,
-              cfg: PoseFitConfig | None = None, progress: bool = False) -> PoseSequence:
+              cfg: PoseFitConfig | None = None, progress: bool = False,
+              anchor: PoseSequence | None = None) -> PoseSequence:
     """The poses of ``frames`` (a sequence of Frame objects: image, mask, camera; indexed one batch at a
     time) fitted to their images.
 
     avatar, body: the Avatar and its body model (frozen: their parameters never change; training's
     pose sweeps call this with the avatar being trained); poses: the frames' starting poses; betas
-    [n,nb] or None: their body shapes; background [3] on the avatar's device. Returns the fitted poses
-    (on the CPU).
+    [n,nb] or None: their body shapes; background [3] on the avatar's device; anchor: the poses whose
+    joint rotations ``cfg.prior`` pulls the fitted ones toward (None: the starting poses). Returns the
+    fitted poses (on the CPU).
     """
     from tqdm import tqdm
 
@@ -125,11 +127,13 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
     try:
         bar = tqdm(total=n, desc="fit poses", unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
         for start in range(0, n, cfg.batch):
-            idx = list(range(start, min(n, start + cfg.batch)))
-            out.append(_fit_batch(visible, body, poses.select(slice(idx[0], idx[-1] + 1)).to(dev),
-                                  None if betas is None else torch.as_tensor(betas[idx[0]: idx[-1] + 1]).float().to(dev),
-                                  [frames[i] for i in idx], background, cfg))  # fmt: skip
-            bar.update(len(idx))
+            rows = slice(start, min(n, start + cfg.batch))
+            start_poses = poses.select(rows).to(dev)
+            toward = None if anchor is None else pose_corrections(start_poses, anchor.select(rows).to(dev)).float()
+            out.append(_fit_batch(visible, body, start_poses,
+                                  None if betas is None else torch.as_tensor(betas[rows]).float().to(dev),
+                                  [frames[i] for i in range(n)[rows]], background, cfg, toward))  # fmt: skip
+            bar.update(rows.stop - rows.start)
         bar.close()
     finally:
         for p, flag in frozen:
@@ -139,7 +143,9 @@ def fit_poses(avatar, body, poses: PoseSequence, betas, frames: Sequence, backgr
     return PoseSequence(*fitted, poses.hand_pose)  # the fingers are not fitted
 
 
-def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: PoseFitConfig) -> PoseSequence:
+def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg: PoseFitConfig,
+               toward: torch.Tensor | None) -> PoseSequence:
+    """``poses`` fitted; ``toward`` [b,75] or None (zero): the corrections the prior pulls toward."""
     dev = background.device
     b = len(poses)
     delta = torch.zeros(b, CORRECTION_DIM, device=dev, requires_grad=True)
@@ -176,7 +182,8 @@ def _fit_batch(avatar, body, poses: PoseSequence, betas, frames, background, cfg
             colors[k] = drawn.colors
             loss = loss + (_pooled(drawn.image, pool) - pooled["targets"][k]).abs().mean() \
                 + cfg.silhouette * (_pooled(drawn.alpha, pool) - pooled["masks"][k]).abs().mean()
-        loss = loss + cfg.prior * delta[:, : NUM_JOINTS * 3].square().sum()
+        off = delta if toward is None else delta - toward
+        loss = loss + cfg.prior * off[:, : NUM_JOINTS * 3].square().sum()
         (grad,) = torch.autograd.grad(loss, delta)
         correction_adam_step(delta, grad, exp_avg, exp_avg_sq, counts, slice(0, b), lr * scale)
     with torch.no_grad():

@@ -35,7 +35,8 @@ from rmavatar.utils import UserError, check_writable_folder
 RESUME_CHANGEABLE = ("optim.iters", "threads", "device", "cuda_graphs", "density.capacity", "log.")
 # The second pass's settings, which its first pass does not use.
 HELD_FIT_KEYS = ("poses.held_fits", "poses.held_fit_steps", "poses.held_fit_lr_rotation",
-                 "poses.held_fit_lr_translation", "poses.smooth_held", "poses.held_fit_scales")
+                 "poses.held_fit_lr_translation", "poses.smooth_held", "poses.held_fit_scales",
+                 "poses.held_fit_prior", "poses.held_fit_anchor")
 
 
 def train(cfg: TrainConfig | None, run_dir: str | Path, *, resume: bool = False, data: str | None = None,

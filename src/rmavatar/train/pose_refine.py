@@ -11,7 +11,8 @@ Two passes (``poses.first_pass``): a first run of that fraction of the iteration
 RUN/pose_pass, a run folder of its own); then the avatar is trained afresh on those poses, *held*
 (``held=True``: no per-step corrections; with ``poses.smooth_held`` first averaged over neighbouring
 frames, as the given poses are), fitting them again at ``poses.held_fits`` of the second pass (by
-default three fits, five in a run long enough that they cost little: :meth:`PoseConfig.held_fit_fractions`).
+default three fits, five in a run long enough that they cost little: :meth:`PoseConfig.held_fit_fractions`),
+each fit's prior pulling every joint toward its neighbouring frames' average (``poses.held_fit_anchor``).
 
 The trainer's hooks, in the order it calls them: :meth:`PoseRefinement.start_poses` (the poses the held
 bodies start from), :meth:`before_step` (a pose fit when one is due; returns poses to hold),
@@ -42,6 +43,7 @@ from rmavatar.utils.config import check_fields
 SHORT_HELD_FITS = (0.25, 0.6, 0.85)
 LONG_HELD_FITS = (0.2, 0.4, 0.6, 0.8, 0.95)
 LONG_RUN_ITERS_PER_FIT_STEP = 3  # a run is long from this many iterations per frame-step of one held fit
+HELD_FIT_ANCHORS = ("neighbours", "start")  # what a held fit's prior pulls the joint rotations toward
 
 
 @dataclass
@@ -70,11 +72,13 @@ class PoseConfig:
     held_fit_lr_rotation: float = 5e-3  # their rotation learning rate: lower, the poses are nearly right
     held_fit_lr_translation: float = 1.25e-4  # their translation learning rate
     held_fit_scales: tuple[int, ...] = (1,)  # their coarse-to-fine pixel blocks (PoseFitConfig.scales)
+    held_fit_prior: float = 0.1  # their prior: weight (per rad^2) of each joint rotation's pull toward the anchor
+    held_fit_anchor: str = "neighbours"  # the anchor: the fit's start averaged over +-smooth frames, or "start"
 
     def validate(self) -> "PoseConfig":
         check_fields(self, "poses", positive=("lr_final_scale", "held_fit_lr_rotation"),
                      nonnegative=("smooth", "lr_rotation", "lr_translation", "fit_lr_rotation",
-                                  "fit_lr_translation", "fit_mask", "held_fit_lr_translation"),
+                                  "fit_lr_translation", "fit_mask", "held_fit_lr_translation", "held_fit_prior"),
                      at_least_one=("fit_steps", "held_fit_steps"))
         if self.lr_final_scale > 1:
             raise UserError(f"poses.lr_final_scale must be in (0, 1], got {self.lr_final_scale}")
@@ -90,6 +94,9 @@ class PoseConfig:
                 raise UserError(f"poses.{name} must be fractions of the run in (0, 1), got {value!r}")
             setattr(self, name, tuple(float(f) for f in value))
         self.held_fit_scales = pixel_blocks(self.held_fit_scales, "poses.held_fit_scales")
+        if self.held_fit_anchor not in HELD_FIT_ANCHORS:
+            raise UserError(f"poses.held_fit_anchor must be one of {', '.join(HELD_FIT_ANCHORS)}, "
+                            f"got {self.held_fit_anchor!r}")
         scale = self.first_pass_scale
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1:
             raise UserError(f"poses.first_pass_scale must be a fraction of the image size in (0, 1], got {scale!r}")
@@ -153,36 +160,37 @@ class PoseConfig:
         """The :class:`rmavatar.evaluate.fit.PoseFitConfig` of this pass's pose fits."""
         if held:
             return PoseFitConfig(steps=self.held_fit_steps, silhouette=self.fit_mask, scales=self.held_fit_scales,
-                                 lr_rotation=self.held_fit_lr_rotation, lr_translation=self.held_fit_lr_translation)
+                                 lr_rotation=self.held_fit_lr_rotation, lr_translation=self.held_fit_lr_translation,
+                                 prior=self.held_fit_prior)
         return PoseFitConfig(steps=self.fit_steps, silhouette=self.fit_mask, lr_rotation=self.fit_lr_rotation,
                              lr_translation=self.fit_lr_translation)
 
-    def build(self, poses: PoseSequence, betas, iters: int, device, held: bool, schedule=None,
+    def build(self, poses: PoseSequence, betas, frame_ids, iters: int, device, held: bool, schedule=None,
               progress: bool = True) -> "PoseRefinement":
-        """The strategy for a pass of ``iters`` over the training ``poses`` (betas [n,nb] or None);
+        """The strategy for a pass of ``iters`` over the training ``poses`` (betas [n,nb] or None;
+        frame_ids [n]: each pose's frame number in its video, for the averages over neighbours);
         ``held``: the second of two passes; ``schedule``: the density schedule (fits avoid its resets)."""
-        return PoseRefinement(self, PoseRefiner(poses, betas, self, iters, device, frozen=held),
+        return PoseRefinement(self, PoseRefiner(poses, betas, self, iters, device, frozen=held), frame_ids,
                               self.fit_iterations(iters, len(poses), schedule, held), progress)
 
 
 class PoseRefinement:
     """The strategy :meth:`PoseConfig.build` makes; ``refiner`` holds the corrections and their Adam."""
 
-    def __init__(self, cfg: PoseConfig, refiner: PoseRefiner, fit_at: set[int], progress: bool):
-        self.cfg, self.refiner, self.fit_at, self.progress = cfg, refiner, fit_at, progress
+    def __init__(self, cfg: PoseConfig, refiner: PoseRefiner, frame_ids, fit_at: set[int], progress: bool):
+        self.cfg, self.refiner, self.frame_ids, self.fit_at, self.progress = cfg, refiner, frame_ids, fit_at, progress
 
     @property
     def held(self) -> bool:
         return self.refiner.frozen
 
-    def start_poses(self, given: PoseSequence, first_pass: RunFolder, index, split: str,
-                    resumed: bool) -> PoseSequence:
+    def start_poses(self, given: PoseSequence, first_pass: RunFolder, split: str, resumed: bool) -> PoseSequence:
         """The poses the held bodies start from: a fresh second pass takes the first pass's result
         (averaged over +-``smooth`` frames with ``smooth_held``)."""
         if self.held and not resumed:
-            poses = read_poses(first_pass.poses, index, split)
+            poses = read_poses(first_pass.poses, self.frame_ids, split)
             if self.cfg.smooth_held:
-                poses = smooth_poses(poses, index, self.cfg.smooth)
+                poses = smooth_poses(poses, self.frame_ids, self.cfg.smooth)
             self.refiner.set_poses(poses)
         return self.refiner.poses() if self.held else given
 
@@ -198,8 +206,12 @@ class PoseRefinement:
             steps = self.cfg.held_fit_steps if self.held else self.cfg.fit_steps
             print(f"{what} after iteration {iteration}: fitting the {n} training poses ({steps} steps each)",
                   flush=True)
-        fitted = fit_poses(avatar, body, self.refiner.poses(), self.refiner.betas, frames, background,
-                           self.cfg.fit_config(self.held), progress=self.progress)
+        poses = self.refiner.poses()
+        anchor = None
+        if self.held and self.cfg.held_fit_anchor == "neighbours":
+            anchor = smooth_poses(poses, self.frame_ids, self.cfg.smooth)
+        fitted = fit_poses(avatar, body, poses, self.refiner.betas, frames, background,
+                           self.cfg.fit_config(self.held), progress=self.progress, anchor=anchor)
         self.refiner.set_poses(fitted)
         return self.refiner.poses() if self.held else None
 

@@ -100,7 +100,7 @@ class Trainer:
         self.poses = None
         if cfg.poses.refines(estimated):
             held = cfg.poses.first_pass_iters(cfg.optim.iters, estimated) > 0  # the second of two passes
-            self.poses = cfg.poses.build(poses, params["betas"] if self.body.num_betas > 0 else None,
+            self.poses = cfg.poses.build(poses, params["betas"] if self.body.num_betas > 0 else None, params["index"],
                                          cfg.optim.iters, self.device, held,
                                          self.density.schedule if cfg.density.enabled else None, self.progress)
         self.iteration = 0
@@ -115,7 +115,7 @@ class Trainer:
         if cfg.density.enabled and (self.graphs.enabled if cfg.density.capacity is None else cfg.density.capacity):
             self.density.use_capacity()  # fixed shapes between density events: graphs stay captured
         if self.poses is not None:
-            poses = self.poses.start_poses(poses, self.run_folder.pose_pass, params["index"], split, ckpt is not None)
+            poses = self.poses.start_poses(poses, self.run_folder.pose_pass, split, ckpt is not None)
         self.frames.hold(poses, self.avatar.pose_input)
         self.ckpt = None  # free the loaded tensors
         self.frames.fill(self.avatar, cfg.background, bool(cfg.loss.lpips), self.bg_generator, FRAME_CACHE_BYTES,

@@ -1,0 +1,77 @@
+"""Where repeated held pose fits take the training poses, by what their prior pulls toward (docs/train.md,
+"The defaults of version 9").
+
+    PYTHONPATH=src python scripts/measure_held_fit_prior.py RUN DATA [--frames 30] [--rounds 5]
+        [--prior 0.1] [--anchor neighbours|start]
+
+RUN: a two-pass run trained with ``poses.refine`` on DATA, a subject made by ``rmavatar synth`` (its true
+poses in smpl_true.npz). Starting from RUN's first-pass poses averaged over +-``poses.smooth`` frames (where
+its second pass starts), fits the first ``--frames`` training poses ``--rounds`` times in a row with RUN's
+final avatar held still, each round as a held fit of today's defaults (20 steps, learning rates 0.005 and
+0.000125, full size, no mask) with the given prior, and prints after each round how far the poses are from
+the true ones: the mean distance in pixels between the projected vertices (at 128 px,
+``measure_pose_pixels.pixel_error``) and the mean joint angle.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from measure_pose_pixels import pixel_error
+from rmavatar.avatar.trained import load_trained
+from rmavatar.body import pose_error, smooth_poses
+from rmavatar.data import load_dataset
+from rmavatar.data.synth import true_poses
+from rmavatar.evaluate.fit import PoseFitConfig, fit_poses
+from rmavatar.train.pose_refine import PoseConfig
+from rmavatar.train.poses import read_poses
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run")
+    ap.add_argument("data")
+    ap.add_argument("--frames", type=int, default=30, help="the first this many training frames")
+    ap.add_argument("--rounds", type=int, default=5, help="held fits in a row")
+    ap.add_argument("--prior", type=float, default=0.1, help="the fits' prior weight (poses.held_fit_prior)")
+    ap.add_argument("--anchor", choices=("neighbours", "start"), default="neighbours",
+                    help="what the prior pulls toward (poses.held_fit_anchor)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    run, n = Path(args.run), args.frames
+    dataset = load_dataset(args.data, size=128)
+    params = dataset.params("train")
+    frame_ids = params["index"][:n]
+    truth = true_poses(dataset, "train")
+    if truth is None:
+        raise SystemExit(f"{args.data} has no true poses (smpl_true.npz): not a synthetic subject")
+    truth = truth.select(slice(0, n))
+    frames = dataset.frames("train", n)
+    cameras = [f.camera for f in frames]
+    trained = load_trained(run, device="cpu")
+    betas = torch.as_tensor(params["betas"][:n]).float() if trained.body.num_betas > 0 else None
+    defaults = PoseConfig()
+    poses = read_poses(run / "pose_pass" / "poses.npz", params["index"], "train").select(slice(0, n))
+    poses = smooth_poses(poses, frame_ids, defaults.smooth)
+    cfg = PoseFitConfig(steps=defaults.held_fit_steps, silhouette=0.0, scales=(1,), prior=args.prior,
+                        lr_rotation=defaults.held_fit_lr_rotation, lr_translation=defaults.held_fit_lr_translation)
+
+    def report(name):
+        px = pixel_error(trained.body, betas, poses, truth, cameras)
+        print(f"{name}: {px:.3f} px, {pose_error(poses, truth)['joint_angle_deg']:.3f} deg", flush=True)
+
+    report("start")
+    started = time.perf_counter()
+    for r in range(args.rounds):
+        anchor = smooth_poses(poses, frame_ids, defaults.smooth) if args.anchor == "neighbours" else None
+        poses = fit_poses(trained.avatar, trained.body, poses, betas, frames, torch.ones(3), cfg, anchor=anchor)
+        report(f"after fit {r + 1}")
+    print(f"{time.perf_counter() - started:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
