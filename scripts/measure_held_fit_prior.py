@@ -26,8 +26,8 @@ from rmavatar.avatar.trained import load_trained
 from rmavatar.body import pose_error, smooth_poses
 from rmavatar.data import load_dataset
 from rmavatar.data.synth import true_poses
-from rmavatar.evaluate.fit import PoseFitConfig, fit_poses
-from rmavatar.train.pose_refine import PoseConfig
+from rmavatar.evaluate.fit import fit_poses
+from rmavatar.train.pose_refine import HELD_FIT_ANCHORS, PoseConfig
 from rmavatar.train.poses import read_poses
 
 
@@ -38,7 +38,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="the first this many training frames")
     ap.add_argument("--rounds", type=int, default=5, help="held fits in a row")
     ap.add_argument("--prior", type=float, default=0.1, help="the fits' prior weight (poses.held_fit_prior)")
-    ap.add_argument("--anchor", choices=("neighbours", "start"), default="neighbours",
+    ap.add_argument("--anchor", choices=HELD_FIT_ANCHORS, default="neighbours",
                     help="what the prior pulls toward (poses.held_fit_anchor)")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -54,11 +54,10 @@ def main() -> None:
     cameras = [f.camera for f in frames]
     trained = load_trained(run, device="cpu")
     betas = torch.as_tensor(params["betas"][:n]).float() if trained.body.num_betas > 0 else None
-    defaults = PoseConfig()
+    settings = PoseConfig(held_fit_prior=args.prior, held_fit_anchor=args.anchor).validate()
     poses = read_poses(run / "pose_pass" / "poses.npz", params["index"], "train").select(slice(0, n))
-    poses = smooth_poses(poses, frame_ids, defaults.smooth)
-    cfg = PoseFitConfig(steps=defaults.held_fit_steps, silhouette=0.0, scales=(1,), prior=args.prior,
-                        lr_rotation=defaults.held_fit_lr_rotation, lr_translation=defaults.held_fit_lr_translation)
+    poses = smooth_poses(poses, frame_ids, settings.smooth)
+    cfg = settings.fit_config(held=True)
 
     def report(name):
         px = pixel_error(trained.body, betas, poses, truth, cameras)
@@ -67,7 +66,7 @@ def main() -> None:
     report("start")
     started = time.perf_counter()
     for r in range(args.rounds):
-        anchor = smooth_poses(poses, frame_ids, defaults.smooth) if args.anchor == "neighbours" else None
+        anchor = settings.held_anchor(poses, frame_ids)
         poses = fit_poses(trained.avatar, trained.body, poses, betas, frames, torch.ones(3), cfg, anchor=anchor)
         report(f"after fit {r + 1}")
     print(f"{time.perf_counter() - started:.0f} s")

@@ -165,6 +165,11 @@ class PoseConfig:
         return PoseFitConfig(steps=self.fit_steps, silhouette=self.fit_mask, lr_rotation=self.fit_lr_rotation,
                              lr_translation=self.fit_lr_translation)
 
+    def held_anchor(self, poses: PoseSequence, frame_ids) -> PoseSequence | None:
+        """What a held fit starting from ``poses`` (frame numbers ``frame_ids``) pulls the joints toward:
+        their average over +-``smooth`` frames, or None (their start) with ``held_fit_anchor`` "start"."""
+        return smooth_poses(poses, frame_ids, self.smooth) if self.held_fit_anchor == "neighbours" else None
+
     def build(self, poses: PoseSequence, betas, frame_ids, iters: int, device, held: bool, schedule=None,
               progress: bool = True) -> "PoseRefinement":
         """The strategy for a pass of ``iters`` over the training ``poses`` (betas [n,nb] or None;
@@ -207,9 +212,7 @@ class PoseRefinement:
             print(f"{what} after iteration {iteration}: fitting the {n} training poses ({steps} steps each)",
                   flush=True)
         poses = self.refiner.poses()
-        anchor = None
-        if self.held and self.cfg.held_fit_anchor == "neighbours":
-            anchor = smooth_poses(poses, self.frame_ids, self.cfg.smooth)
+        anchor = self.cfg.held_anchor(poses, self.frame_ids) if self.held else None
         fitted = fit_poses(avatar, body, poses, self.refiner.betas, frames, background,
                            self.cfg.fit_config(self.held), progress=self.progress, anchor=anchor)
         self.refiner.set_poses(fitted)
