@@ -2,7 +2,8 @@
 "The defaults of version 9").
 
     PYTHONPATH=src python scripts/measure_held_fit_prior.py RUN DATA [--frames 30] [--rounds 5]
-        [--prior 0.1] [--anchor neighbours|start]
+        [--prior 0.1] [--anchor neighbours|start] [--steps 20] [--lr-scale 1]
+        [--smooth 2] [--mask 0] [--from-truth]
 
 RUN: a two-pass run trained with ``poses.refine`` on DATA, a subject made by ``rmavatar synth`` (its true
 poses in smpl_true.npz). Starting from RUN's first-pass poses averaged over +-``poses.smooth`` frames (where
@@ -10,7 +11,10 @@ its second pass starts), fits the first ``--frames`` training poses ``--rounds``
 final avatar held still, each round as a held fit of today's defaults (20 steps, learning rates 0.005 and
 0.000125, full size, no mask) with the given prior, and prints after each round how far the poses are from
 the true ones: the mean distance in pixels between the projected vertices (at 128 px,
-``measure_pose_pixels.pixel_error``) and the mean joint angle.
+``measure_pose_pixels.pixel_error``) and the mean joint angle. ``--steps``, ``--smooth`` and ``--mask`` set
+``poses.held_fit_steps``, ``poses.smooth`` (the anchor's +-frames) and ``poses.fit_mask``; ``--lr-scale``
+multiplies both held-fit learning rates;
+``--from-truth`` starts from the true poses instead: where the avatar's own images pull them.
 """
 
 from __future__ import annotations
@@ -40,6 +44,11 @@ def main() -> None:
     ap.add_argument("--prior", type=float, default=0.1, help="the fits' prior weight (poses.held_fit_prior)")
     ap.add_argument("--anchor", choices=HELD_FIT_ANCHORS, default="neighbours",
                     help="what the prior pulls toward (poses.held_fit_anchor)")
+    ap.add_argument("--steps", type=int, default=20, help="Adam steps per frame (poses.held_fit_steps)")
+    ap.add_argument("--lr-scale", type=float, default=1.0, help="factor on both held-fit learning rates")
+    ap.add_argument("--smooth", type=int, default=2, help="the anchor's average over +-this many frames (poses.smooth)")
+    ap.add_argument("--mask", type=float, default=0.0, help="weight of the mask term (poses.fit_mask)")
+    ap.add_argument("--from-truth", action="store_true", help="start from the true poses")
     args = ap.parse_args()
     torch.set_num_threads(1)
     run, n = Path(args.run), args.frames
@@ -54,9 +63,15 @@ def main() -> None:
     cameras = [f.camera for f in frames]
     trained = load_trained(run, device="cpu")
     betas = torch.as_tensor(params["betas"][:n]).float() if trained.body.num_betas > 0 else None
-    settings = PoseConfig(held_fit_prior=args.prior, held_fit_anchor=args.anchor).validate()
-    poses = read_poses(run / "pose_pass" / "poses.npz", params["index"], "train").select(slice(0, n))
-    poses = smooth_poses(poses, frame_ids, settings.smooth)
+    settings = PoseConfig(held_fit_prior=args.prior, held_fit_anchor=args.anchor, held_fit_steps=args.steps,
+                          smooth=args.smooth, fit_mask=args.mask).validate()
+    settings.held_fit_lr_rotation *= args.lr_scale
+    settings.held_fit_lr_translation *= args.lr_scale
+    if args.from_truth:
+        poses = truth
+    else:
+        poses = read_poses(run / "pose_pass" / "poses.npz", params["index"], "train").select(slice(0, n))
+        poses = smooth_poses(poses, frame_ids, settings.smooth)
     cfg = settings.fit_config(held=True)
 
     def report(name):
