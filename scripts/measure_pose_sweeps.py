@@ -10,6 +10,9 @@ applied (e.g. ``poses.refine=True "poses.fits=(0.2,0.45)"``), then reports: the 
 training poses' error, the PSNR on the avatar's own first 30 training frames (with its refined poses),
 and the PSNR on the first 8 test frames of NOISY after ``eval --fit-poses`` (100 steps) from their
 noisy poses. Writes WORK/NAME/run and WORK/NAME/result.json; prints the result.
+
+Two runs side by side on a 2-core machine: give each ``threads=1``. With torch's own choice of threads
+each, two such runs slowed about fivefold (docs/train.md, "The defaults of version 9").
 """
 
 from __future__ import annotations
