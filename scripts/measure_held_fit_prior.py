@@ -63,10 +63,11 @@ def main() -> None:
     cameras = [f.camera for f in frames]
     trained = load_trained(run, device="cpu")
     betas = torch.as_tensor(params["betas"][:n]).float() if trained.body.num_betas > 0 else None
+    defaults = PoseConfig()
     settings = PoseConfig(held_fit_prior=args.prior, held_fit_anchor=args.anchor, held_fit_steps=args.steps,
-                          smooth=args.smooth, fit_mask=args.mask).validate()
-    settings.held_fit_lr_rotation *= args.lr_scale
-    settings.held_fit_lr_translation *= args.lr_scale
+                          smooth=args.smooth, fit_mask=args.mask,
+                          held_fit_lr_rotation=args.lr_scale * defaults.held_fit_lr_rotation,
+                          held_fit_lr_translation=args.lr_scale * defaults.held_fit_lr_translation).validate()
     if args.from_truth:
         poses = truth
     else:
