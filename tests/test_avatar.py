@@ -21,6 +21,8 @@ from rmavatar.avatar import (
     triangle_frames,
     window_alpha,
 )
+from rmavatar.avatar.geometry import same_quads
+from rmavatar.body import load_body_model
 from rmavatar.utils import UserError
 
 from devices import DEVICES
@@ -741,3 +743,58 @@ def _shepperd_diag():
         for d in range(3):
             table[4 * d][k] = float(s[d])
     return table
+
+
+class _Triangulated:
+    """``body`` with another triangulation ``faces`` (what the checks and ``from_state`` read of a body)."""
+
+    def __init__(self, body, faces):
+        self.spec, self.v_template, self.binding_faces, self.offsets = body.spec, body.v_template, body.binding_faces, None
+        self.faces = faces
+
+
+def _resplit(faces, rows):
+    """``faces`` with the quads whose first triangle is row ``rows[k]`` split along their other diagonal."""
+    out = faces.clone()
+    for i in rows:
+        (a, b, c), (c2, d, a2) = faces[i].tolist(), faces[i + 1].tolist()
+        assert (c2, a2) == (c, a), "not a quad split [a,b,c], [c,d,a]"
+        out[i], out[i + 1] = torch.tensor([a, b, d]), torch.tensor([d, b, c])
+    return out
+
+
+def test_an_avatar_loads_on_a_body_that_splits_some_quads_the_other_way():
+    """Anny splits each quad along its shorter diagonal in floating point; on its eyes' grid the two are
+    equal but for the last bit, and machines that round otherwise split a few quads the other way. A run
+    trained on one machine loads on another, its avatar on the triangulation it was trained on."""
+    from rmavatar.avatar.run import body_signature, check_body
+
+    body = load_body_model("anny")
+    f = body.faces
+    # quads split [a,b,c], [c,d,a] among the binding faces (the Gaussians sit on them)
+    quads = [int(i) for i in body.binding_faces[:-1]
+             if bool((f[i, [0, 2]] == f[i + 1, [2, 0]]).all()) and int(f[i, 1]) != int(f[i + 1, 1])][:40:8]
+    assert len(quads) == 5
+    moved = _resplit(f, quads)
+    other = _Triangulated(body, moved)
+    assert same_quads(f, moved) and same_quads(moved, f) and same_quads(f, f)
+    flipped = moved.clone()
+    flipped[quads[0] : quads[0] + 2] = flipped[quads[0] : quads[0] + 2].flip(1)  # the quad turned inside out
+    assert not same_quads(f, flipped)
+    torn = moved.clone()
+    torn[quads[0] + 1, 1] = int(f[quads[0] + 1, 1]) + 1  # another vertex: another quad
+    assert not same_quads(f, torn)
+    a = AvatarConfig(rectifier="paper").build(body)
+    randomise(a, torch.Generator().manual_seed(3))
+    state = a.checkpoint_state()
+    b = Avatar.from_state(other, state)
+    assert torch.equal(b.faces, f) and torch.equal(b.rest_frames, a.rest_frames)
+    pose = torch.randn(69, generator=torch.Generator().manual_seed(4)) * 0.2
+    ga, gb = a(body.v_template, pose), b(body.v_template, pose)
+    assert torch.equal(ga.means, gb.means) and torch.equal(ga.quats, gb.quats) and torch.equal(ga.scales, gb.scales)
+    saved = body_signature(body)
+    check_body(saved, other, "ckpt", faces=f)
+    with pytest.raises(UserError, match="incompatible"):
+        check_body(saved, other, "ckpt")  # without the avatar's triangulation: a different mesh
+    with pytest.raises(UserError, match="different body mesh"):
+        Avatar.from_state(_Triangulated(body, flipped), state)

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from rmavatar.avatar.compose import compose_gaussians
-from rmavatar.avatar.geometry import FaceTable, face_table, triangle_frames
+from rmavatar.avatar.geometry import FaceTable, face_table, same_quads, triangle_frames
 from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
 from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
@@ -359,12 +359,14 @@ class Avatar(nn.Module):
         except (KeyError, TypeError) as exc:
             raise UserError(f"{where}: not an avatar state ({exc})") from None
         body_faces = torch.as_tensor(body.faces, dtype=torch.long)
-        if faces.shape != body_faces.shape or not torch.equal(faces.cpu(), body_faces.cpu()):
+        if faces.shape != body_faces.shape or not (torch.equal(faces.cpu(), body_faces.cpu())
+                                                   or same_quads(faces, body_faces)):
             raise UserError(
                 f"{where}: the avatar was trained on a different body mesh ({faces.shape[0]} faces) "
                 f"than the body model given ({body_faces.shape[0]} faces)"
             )
-        avatar = cls(body.faces, getattr(body, "binding_faces", None), body.v_template,
+        # the avatar's own triangulation (a body built on another machine may split a few quads otherwise)
+        avatar = cls(faces.to(body_faces.device), getattr(body, "binding_faces", None), body.v_template,
                      dataclasses.replace(config, placement="face"), joint_weights=config.body_joint_weights(body),
                      relaxed_hand_pose=config.relaxed_hands(body))
         avatar.config = config

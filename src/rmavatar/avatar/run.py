@@ -200,6 +200,12 @@ class Checkpoint:
     def num_gaussians(self) -> int:
         return int(self.avatar["state_dict"]["means"].shape[0])
 
+    @property
+    def faces(self) -> torch.Tensor | None:
+        """The triangulation [F,3] the avatar was trained on (None where its state holds none)."""
+        state = self.avatar.get("state_dict") if isinstance(self.avatar, dict) else None
+        return state.get("faces") if isinstance(state, dict) else None
+
     def to_payload(self) -> dict:
         """Plain containers for torch.save (a dataclass would not load with ``weights_only``)."""
         return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
@@ -377,21 +383,26 @@ def body_info(body: Any, gender: str | None) -> dict:
     return {**body_signature(body), "gender": gender, "offsets": None if offsets is None else offsets.cpu().clone()}
 
 
-def load_saved_body(saved: dict, where: str):
-    """The body model a checkpoint's ``body`` (:func:`body_info`) describes, checked against it."""
+def load_saved_body(saved: dict, where: str, faces=None):
+    """The body model a checkpoint's ``body`` (:func:`body_info`) describes, checked against it and, when
+    given, the triangulation the checkpoint's avatar holds (``faces`` [F,3], as :func:`check_body`)."""
     from rmavatar.body import load_body_model
 
     body = load_body_model(saved["spec"], gender=saved.get("gender"), offsets=saved.get("offsets"))
-    check_body(saved, body, where)
+    check_body(saved, body, where, faces)
     return body
 
 
-def check_body(saved: dict, body: Any, where: str) -> None:
-    """Raise UserError when ``body`` cannot carry the avatar saved with signature ``saved``."""
+def check_body(saved: dict, body: Any, where: str, faces=None) -> None:
+    """Raise UserError when ``body`` cannot carry the avatar saved with signature ``saved``. ``faces``
+    [F,3]: the avatar's own triangulation; a body that splits some of the same quads along their other
+    diagonal (:func:`rmavatar.avatar.geometry.same_quads`: Anny built on a machine that rounds otherwise)
+    carries it too, the avatar keeping its own."""
+    from rmavatar.avatar.geometry import same_quads
+
     now = body_signature(body)
-    if (saved["num_vertices"], saved["num_faces"], saved["faces_sha1"]) != (
-        now["num_vertices"], now["num_faces"], now["faces_sha1"]
-    ):
+    counts = (saved["num_vertices"], saved["num_faces"]) == (now["num_vertices"], now["num_faces"])
+    if not counts or (saved["faces_sha1"] != now["faces_sha1"] and (faces is None or not same_quads(faces, body.faces))):
         raise UserError(
             f"{where} was trained with body model {saved['spec']!r} ({saved['num_vertices']} vertices, "
             f"{saved['num_faces']} faces), which is incompatible with {now['spec']!r} "

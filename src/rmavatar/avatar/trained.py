@@ -155,7 +155,7 @@ def load_trained(run_dir: str | os.PathLike, device: str | torch.device = "cpu",
     run.check_trained()
     path = run.checkpoint
     ckpt = run.read_checkpoint()
-    body = load_saved_body(ckpt.body, str(path))
+    body = load_saved_body(ckpt.body, str(path), faces=ckpt.faces)
     avatar = Avatar.from_state(body, ckpt.avatar, where=str(path))
     avatar.eval()
     if not every_gaussian:

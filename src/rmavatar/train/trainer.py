@@ -229,7 +229,7 @@ def load_body(cfg: TrainConfig, dataset, ckpt: Checkpoint | None, where: str):
     preset and gender, else Anny; with the dataset's body offsets (a captured shape) where the body is
     the one the dataset names."""
     if ckpt is not None:
-        return load_saved_body(ckpt.body, where), ckpt.body
+        return load_saved_body(ckpt.body, where, faces=ckpt.faces), ckpt.body
     gender = cfg.model.gender or dataset.gender
     body = dataset.body_model(cfg.model.body, gender)
     return body, body_info(body, gender)
