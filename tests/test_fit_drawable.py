@@ -66,7 +66,7 @@ def test_the_drawable_copy_renders_and_differentiates_as_the_whole_avatar(device
     for p in av.parameters():
         p.requires_grad_(False)
     before = {name: getattr(av, name).clone() for name in GAUSSIAN_PARAMS}
-    slot = av._face_slot().clone()
+    slot = av.face_slot().clone()
 
     copy = drawable_copy(av)
 
@@ -87,7 +87,7 @@ def test_the_drawable_copy_renders_and_differentiates_as_the_whole_avatar(device
     # the avatar itself is untouched: its parameters, its rows' face slots
     for name, value in before.items():
         assert torch.equal(getattr(av, name), value), name
-    assert torch.equal(av._face_slot(), slot)
+    assert torch.equal(av.face_slot(), slot)
 
 
 def test_a_trained_avatar_is_loaded_without_its_faint_gaussians_and_draws_the_same(trained_run, tmp_path):

@@ -342,7 +342,7 @@ def test_each_config_value_builds_its_design_with_the_same_state_keys():
     assert AvatarConfig(rectifier="paper").body_joint_weights(body) is None
     assert torch.equal(AvatarConfig(rectifier="local").body_joint_weights(body), body.weights)
     with pytest.raises(NotImplementedError):
-        RectifierDesign().encoded_position(None, None, None)
+        RectifierDesign().encoded_position(None, None)
 
 
 @pytest.mark.parametrize("design", ["paper", "local"])
@@ -372,7 +372,7 @@ def test_design_reference_gives_the_avatars_offsets(design, alpha):
     assert g_fast[0] is not None  # paper: through the encoded mu*; local: through w R and w
     # the raw outputs are what rectify() gives, brought to world units by the design
     raw = av.rectify(v, pose)
-    rows = av.face_table(v)[av._face_slot()]
+    rows = av.face_table(v)[av.face_slot()]
     wR, w = rows[:, FaceTable.wR].reshape(-1, 3, 3), rows[:, FaceTable.w]
     for a, b in zip(av.rectifier.world_offsets(raw, wR, w), fast):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

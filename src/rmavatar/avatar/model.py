@@ -23,6 +23,7 @@ from torch import nn
 from rmavatar.avatar.compose import compose_gaussians
 from rmavatar.avatar.geometry import FaceTable, face_table, same_quads, triangle_frames
 from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
+from rmavatar.avatar.rows import RowGathers, frame_points, posed_rows
 from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
 from rmavatar.render.kernels import ALPHA_MIN
@@ -174,13 +175,6 @@ def area_counts(areas: torch.Tensor, total: int) -> torch.Tensor:
     return base + 1
 
 
-def _refill(old: torch.Tensor | None, new: torch.Tensor | None) -> torch.Tensor | None:
-    """``new``'s values in ``old``'s memory where the shapes agree (else ``new``)."""
-    if old is None or new is None or old.shape != new.shape:
-        return new
-    return old.copy_(new)
-
-
 def _mesh_tensors(faces, binding_faces, v_template):
     """faces [F,3] long, binding_faces [Fb] long (None: every face) and v_template [V,3] float32, checked."""
     faces = torch.as_tensor(faces, dtype=torch.long)
@@ -286,6 +280,7 @@ class Avatar(nn.Module):
         self.live_rows: int | None = None  # capacity buffers (class docstring); None: every row is live
         self.register_buffer("live", None, persistent=False)
         self.register_buffer("row_weights", None, persistent=False)
+        self.rows = RowGathers()  # the per-row gathers steps reuse (rmavatar.avatar.rows)
 
     def _init_mesh(self, faces, binding_faces, v_template):
         """The mesh buffers: the faces, the binding faces and what the rest mesh gives."""
@@ -414,36 +409,16 @@ class Avatar(nn.Module):
     def posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
         """Mesh-embedded (unrectified) world attributes: mu* [N,3], r* [N,4], s* [N,3] (``table``: as in
         :meth:`forward`)."""
-        g, _ = self._posed(vertices, table)
-        return compose_gaussians(g, self.means, self.quats, self.log_scales)[:3]
+        return compose_gaussians(self._posed(vertices, table), self.means, self.quats, self.log_scales)[:3]
 
-    def _posed_means(self, g: torch.Tensor) -> torch.Tensor:
-        """mu* = w R mu + M [N,3] alone, from the face rows ``g`` of :meth:`_posed` (the paper's
-        rectifier reads it)."""
-        wR = g[:, FaceTable.wR].unflatten(-1, (3, 3))
-        return torch.baddbmm(g[:, FaceTable.M].unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
+    def rest_means(self) -> torch.Tensor:
+        """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input)."""
+        wR, M, _ = self.rows.local(self)
+        return frame_points(wR, M, self.means)
 
-    def rest_means(self, slot: torch.Tensor | None = None) -> torch.Tensor:
-        """Every Gaussian's position on the rest mesh [N,3] (the local rectifier's input); ``slot`` as
-        from ``_posed`` (computed when None)."""
-        wR, M, _ = self._local_inputs(self._face_slot() if slot is None else slot)
-        return torch.baddbmm(M.unsqueeze(-1), wR, self.means.unsqueeze(-1)).squeeze(-1)
-
-    def _local_inputs(self, slot: torch.Tensor):
-        """Per-Gaussian constants of the local rectifier: the rest frames as w R [N,3,3], the rest
-        centroids [N,3] and the pose-mask groups [N]; gathered once per ``slot`` (density control makes a
-        new one) and buffer set (``.to()`` replaces them), not on every step."""
-        key = (slot, slot._version, self.rest_frames, self.rest_scales, self.rest_centroids,
-               getattr(self, "face_pose_group", None))
-        cached = getattr(self, "_local_cache", None)
-        if cached is None or any(a is not b if torch.is_tensor(a) else a != b for a, b in zip(cached[0], key)):
-            wR = self.rest_scales[slot, None, None] * self.rest_frames[slot]
-            group = None if key[-1] is None else self.face_pose_group[self.face_ids]
-            values = (wR, self.rest_centroids[slot], group)
-            if cached is not None and cached[0][0] is slot:  # rows rewritten in place: so are these
-                values = tuple(_refill(old, new) for old, new in zip(cached[1], values))
-            cached = self._local_cache = (key, values)
-        return cached[1]
+    def face_slot(self) -> torch.Tensor:
+        """Index of every Gaussian's face in ``binding_faces`` [N] (kept by :attr:`rows`)."""
+        return self.rows.slot(self)
 
     def face_table(self, vertices: torch.Tensor, kernels: bool = False) -> torch.Tensor:
         """The frames of the binding faces of posed meshes ``vertices`` [V,3] or [B,V,3]:
@@ -465,10 +440,9 @@ class Avatar(nn.Module):
         vertices, faces = vertices.to(self.means.dtype), self.faces[self.binding_faces]
         return face_table(vertices, faces) if kernels else FaceTable.rows(*triangle_frames(vertices, faces))
 
-    def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None):
-        """Every Gaussian's row g [N,FACE_TABLE] of the posed mesh's face table (``compose_gaussians`` reads it)
-        and its index into the binding faces, slot [N]. ``table``: :meth:`face_table` of ``vertices``,
-        when the caller has it (then ``vertices`` is not read)."""
+    def _posed(self, vertices: torch.Tensor | None, table: torch.Tensor | None = None) -> torch.Tensor:
+        """Every Gaussian's row g [N,FACE_TABLE] of the posed mesh's face table (``compose_gaussians`` reads it).
+        ``table``: :meth:`face_table` of ``vertices``, when the caller has it (then ``vertices`` is not read)."""
         if table is None:
             if vertices is None or vertices.dim() != 2:
                 raise ValueError(f"vertices must be [{self.num_vertices},3] (this avatar's body), got "
@@ -477,38 +451,7 @@ class Avatar(nn.Module):
         elif table.shape != (self.binding_faces.shape[0], FACE_TABLE):
             raise ValueError(f"table must be [{self.binding_faces.shape[0]},{FACE_TABLE}] (face_table of one "
                              f"mesh), got {tuple(table.shape)}")
-        slot = self._face_slot()
-        # index_select: its backward (pose refinement, fitting) is an index_add, faster on CPU than
-        # indexing's (docs/model.md, "Measured choices")
-        g = table.index_select(0, slot)
-        return g, slot
-
-    def _face_slot(self) -> torch.Tensor:
-        """Index of every Gaussian's face in ``binding_faces`` [N]; computed (and checked, a host sync)
-        once per ``face_ids`` tensor: density control replaces it, training steps reuse it."""
-        key = (self.face_ids, self.face_ids._version, self.binding_faces, self.binding_faces._version)
-        cached = getattr(self, "_slot_cache", None)
-        if cached is not None and all(a is b if torch.is_tensor(a) else a == b for a, b in zip(cached[0], key)):
-            return cached[1]
-        slot = self._compute_face_slot()
-        if cached is not None and cached[0][0] is self.face_ids:  # rows rewritten in place: so is the slot
-            slot = _refill(cached[1], slot)
-        self._slot_cache = (key, slot)
-        return slot
-
-    def refresh_row_caches(self) -> None:
-        """Recompute what is gathered per Gaussian row (the face slots, the local rectifier's inputs) after
-        the rows were rewritten in place, into the same tensors: a captured step reads them there."""
-        self._local_inputs(self._face_slot())
-
-    def _compute_face_slot(self) -> torch.Tensor:
-        dev = self.face_ids.device
-        lookup = torch.full((self.faces.shape[0],), -1, dtype=torch.long, device=dev)
-        lookup[self.binding_faces] = torch.arange(self.binding_faces.shape[0], device=dev)
-        slot = lookup[self.face_ids]
-        if bool((slot < 0).any()):
-            raise ValueError("some Gaussians are attached to faces outside binding_faces")
-        return slot
+        return posed_rows(table, self.face_slot())
 
     def pose_input(self, body_pose: torch.Tensor, hand_pose: torch.Tensor | None = None) -> torch.Tensor:
         """The rectifier's pose input ``[..., pose_dim]`` from ``body_pose [..., 69]`` and ``hand_pose
@@ -525,22 +468,19 @@ class Avatar(nn.Module):
         paper's; what :meth:`forward` takes as ``rectified``."""
         if self.rectifier is None:
             raise ValueError("this avatar has no rectifier")
-        if self.rectifier.reads_posed_mesh:
-            g, slot = self._posed(vertices)
-        else:  # the design's input does not depend on the posed mesh: it is not posed
-            g, slot = None, self._face_slot()
-        return self._rectify(g, slot, body_pose)
+        # a design whose input does not depend on the posed mesh does not pose it
+        return self._rectify(self._posed(vertices) if self.rectifier.reads_posed_mesh else None, body_pose)
 
-    def _rectify(self, g: torch.Tensor | None, slot: torch.Tensor, body_pose: torch.Tensor | None):
-        """The design's raw outputs for face rows ``g`` (None where the design does not read the posed
-        mesh) and ``slot`` as from :meth:`_posed`, after checking ``body_pose``."""
+    def _rectify(self, g: torch.Tensor | None, body_pose: torch.Tensor | None):
+        """The design's raw outputs for face rows ``g`` as from :meth:`_posed` (None where the design does not
+        read the posed mesh), after checking ``body_pose``."""
         if body_pose is None:
             raise ValueError(f"this avatar has a rectifier: forward needs its pose input [{self.pose_dim}]")
         body_pose = torch.as_tensor(body_pose, dtype=self.means.dtype, device=self.means.device).reshape(-1)
         if body_pose.numel() != self.pose_dim:
             raise ValueError(f"the rectifier's pose input must have {self.pose_dim} values (pose_input), "
                              f"got {body_pose.numel()}")
-        return self.rectifier.rectify(self, g, slot, body_pose)
+        return self.rectifier.rectify(self, g, body_pose)
 
     def forward(self, vertices: torch.Tensor | None, body_pose: torch.Tensor | None = None,
                 rectified: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
@@ -557,10 +497,10 @@ class Avatar(nn.Module):
         use instead of running it (test-time pose fitting holds them fixed between refreshes); table:
         :meth:`face_table` of ``vertices`` (training passes each frame's, computed once; ``vertices`` may
         then be None)."""
-        g, slot = self._posed(vertices, table)
+        g = self._posed(vertices, table)
         raw = None
         if self.rectifier is not None:
-            raw = rectified if rectified is not None else self._rectify(g, slot, body_pose)
+            raw = rectified if rectified is not None else self._rectify(g, body_pose)
         # the design says in which frame its offsets live (compose_gaussians brings them to world units)
         mu, r, s, frames, offsets = compose_gaussians(g, self.means, self.quats, self.log_scales, raw,
                                                       self.rectifier, self.config.min_scale)
@@ -620,7 +560,7 @@ def drawable_copy(avatar: Avatar) -> Avatar:
     keep = avatar.opacities() >= ALPHA_MIN  # capacity buffers' unused rows are drawn at opacity 0
     if not keep.any() or (avatar.live is None and keep.all()):
         return avatar
-    used = torch.unique(avatar._face_slot()[keep])
+    used = torch.unique(avatar.face_slot()[keep])
     out = copy.copy(avatar)  # a shallow copy: the shared buffers and the rectifier stay shared
     out._parameters, out._buffers = dict(avatar._parameters), dict(avatar._buffers)
     for name in GAUSSIAN_PARAMS:
@@ -631,6 +571,5 @@ def drawable_copy(avatar: Avatar) -> Avatar:
         out._buffers[name] = getattr(avatar, name)[used]
     out._buffers["live"] = out._buffers["row_weights"] = None
     out.live_rows = None
-    for cache in ("_slot_cache", "_local_cache"):  # the rows' gathers (Avatar._face_slot), made anew
-        out.__dict__.pop(cache, None)
+    out.rows = RowGathers()  # other rows: gathers of their own
     return out

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rmavatar.avatar.geometry import triangle_frames
+from rmavatar.avatar.rows import posed_means
 from rmavatar.utils import UserError
 from rmavatar.utils.device import constant, host_scalar, set_host_scalar
 
@@ -283,13 +284,12 @@ class RectifierDesign(Rectifier):
     needs_joint_weights = False  # True: Gaussians see their face's masked pose, made from skinning weights
     offsets_in_face_frame = False  # True: d_mu, d_s in the triangle's frame, units of w; False: world units
 
-    def encoded_position(self, avatar, g: torch.Tensor | None, slot: torch.Tensor) -> torch.Tensor:
+    def encoded_position(self, avatar, g: torch.Tensor | None) -> torch.Tensor:
         """The position the MLP encodes [N,3], from the avatar's Gaussians; ``g``: their rows of the posed
-        mesh's face table (``Avatar._posed``; None when ``reads_posed_mesh`` is False); ``slot``: their
-        index into the binding faces."""
+        mesh's face table (``Avatar._posed``; None when ``reads_posed_mesh`` is False)."""
         raise NotImplementedError
 
-    def pose_groups(self, avatar, slot: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    def pose_groups(self, avatar) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """(pose_masks [U,69], group [N]): Gaussian i sees ``body_pose * pose_masks[group[i]]``;
         (None, None): every Gaussian sees the whole pose."""
         raise NotImplementedError
@@ -306,12 +306,12 @@ class RectifierDesign(Rectifier):
         w [N,1] (plain autograd; ``compose_gaussians`` does the same fused)."""
         raise NotImplementedError
 
-    def rectify(self, avatar, g: torch.Tensor | None, slot: torch.Tensor,
+    def rectify(self, avatar, g: torch.Tensor | None,
                 body_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The MLP's raw outputs (d_mu, d_s, d_r) for the avatar's Gaussians (``g``, ``slot`` as in
+        """The MLP's raw outputs (d_mu, d_s, d_r) for the avatar's Gaussians (``g`` as in
         :meth:`encoded_position`; ``body_pose`` [69] checked and in the avatar's dtype)."""
-        pose_masks, group = self.pose_groups(avatar, slot)
-        return self(self.encoded_position(avatar, g, slot), body_pose, pose_masks, group)
+        pose_masks, group = self.pose_groups(avatar)
+        return self(self.encoded_position(avatar, g), body_pose, pose_masks, group)
 
     # ---------------------------------------------------------------- the plain reference (for tests)
     def reference(self, avatar, vertices: torch.Tensor,
@@ -344,10 +344,10 @@ class PaperRectifier(RectifierDesign):
     name = "paper"
     reads_posed_mesh = True
 
-    def encoded_position(self, avatar, g, slot):
-        return avatar._posed_means(g)
+    def encoded_position(self, avatar, g):
+        return posed_means(g, avatar.means)
 
-    def pose_groups(self, avatar, slot):
+    def pose_groups(self, avatar):
         return None, None
 
     def world_offsets(self, offsets, wR, w):
@@ -370,11 +370,11 @@ class LocalRectifier(RectifierDesign):
     needs_joint_weights = True
     offsets_in_face_frame = True
 
-    def encoded_position(self, avatar, g, slot):
-        return avatar.rest_means(slot)
+    def encoded_position(self, avatar, g):
+        return avatar.rest_means()
 
-    def pose_groups(self, avatar, slot):
-        return avatar.pose_masks, avatar._local_inputs(slot)[2]
+    def pose_groups(self, avatar):
+        return avatar.pose_masks, avatar.rows.local(avatar)[2]
 
     def make_pose_masks(self, faces, joint_weights, threshold, num_vertices):
         """A face sees joint j's three pose values when j's skinning weight on one of its corners
@@ -395,7 +395,7 @@ class LocalRectifier(RectifierDesign):
         return (wR @ d_mu.unsqueeze(-1)).squeeze(-1), w * d_s, d_r
 
     def _reference_position(self, avatar, R, w, M):
-        slot = avatar._face_slot()
+        slot = avatar.face_slot()
         rest_mu = (avatar.rest_frames[slot] @ avatar.means.unsqueeze(-1)).squeeze(-1)
         return avatar.rest_scales[slot].unsqueeze(-1) * rest_mu + avatar.rest_centroids[slot]
 

@@ -213,7 +213,7 @@ def _set_live(avatar, n: int, capacity: int | None) -> None:
     if avatar.live is not None and avatar.live.shape == live.shape:
         avatar.live.copy_(live)
         avatar.row_weights.copy_(weights)
-        avatar.refresh_row_caches()  # the face slots and the rectifier's inputs, in place too
+        avatar.rows.refresh(avatar)  # the face slots and the rectifier's inputs, in place too
     else:
         avatar.live, avatar.row_weights = live, weights
     avatar.live_rows = n
