@@ -4,9 +4,11 @@ checkpoints as without them."""
 
 import pytest
 import torch
+import trimesh
 from test_density import adam_with_state, make
 
-from rmavatar.avatar import GAUSSIAN_PARAMS
+from rmavatar.avatar import GAUSSIAN_PARAMS, Avatar, AvatarConfig
+from rmavatar.avatar.rows import RowGathers
 from rmavatar.avatar.run import RunFolder
 from rmavatar.train.density import densify, grown_capacity, prune, use_capacity
 from rmavatar.train.losses import _Regularisers
@@ -58,6 +60,29 @@ def test_densify_and_prune_rewrite_the_rows_in_place_as_the_plain_surgery_would(
     # In place: the parameters are the same tensors in the same memory, and so are the optimiser's.
     assert b.capacity == capacity and b.means.data_ptr() == where
     assert ob.param_groups[0]["params"][0] is b.means
+
+
+def test_the_rows_gathers_are_rewritten_in_place_with_the_values_of_fresh_ones():
+    """A captured posing graph reads each row's face slot and the local rectifier's per-row constants
+    where they are: density control rewrites them in place, with what a fresh gather gives."""
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    v, f = torch.tensor(mesh.vertices, dtype=torch.float32), torch.tensor(mesh.faces)
+    weights = torch.softmax(4 * torch.randn(len(v), 24, generator=torch.Generator().manual_seed(1)), -1)
+    av = Avatar(f, None, v, AvatarConfig(rectifier="local", sh_degree=1), joint_weights=weights)
+    with torch.no_grad():
+        av.log_scales[::2] -= 4.0
+    opt = adam_with_state(av)
+    use_capacity(av, opt, 400)
+    held = (av.rows.slot(av), *av.rows.local(av))  # what a captured graph holds
+    densify(av, opt, torch.linspace(0, 1e-3, av.num_gaussians), 2e-4, percent_dense=0.02,
+            generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        av.opacity_logits[av.num_gaussians - 10 : av.num_gaussians] = -20.0
+    assert prune(av, opt) > 0 and av.num_gaussians > len(f)
+    fresh = RowGathers()  # the held tensors hold the new rows' values already, without being asked again
+    for got, want in zip(held, (fresh.slot(av), *fresh.local(av))):
+        assert torch.equal(got, want)
+    assert all(a is b for a, b in zip(held, (av.rows.slot(av), *av.rows.local(av))))
 
 
 def test_outgrowing_the_buffers_reallocates_half_as_many_again():
