@@ -4,7 +4,8 @@ step it owns, for the rectifier in float32 and bfloat16 and without a rectifier.
     rmavatar bench avatar --gaussians 25000 --repeats 20 [--threads 2] [--body anny]
 
 Prints one JSON object: median / min wall seconds and median process CPU seconds per step, for the
-rectifier in float32 and bfloat16 and without a rectifier. The machine's other load shows in the
+default rectifier design (``model.rectifier``) in float32 and bfloat16 and without a rectifier, each
+avatar built by its config on the body (as training builds it), posed in a random pose. The machine's other load shows in the
 wall times; CPU seconds (summed over threads) are steadier on a shared machine.
 """
 
@@ -15,21 +16,6 @@ import statistics
 import time
 
 import torch
-
-
-def _mesh(body_spec: str | None):
-    if body_spec:
-        from rmavatar.body import load_body_model
-
-        body = load_body_model(body_spec)
-        pose = torch.zeros(1, 69)
-        verts = body(None, torch.zeros(1, 3), pose, torch.zeros(1, 3)).vertices[0]
-        return body.faces, body.binding_faces, body.v_template, verts
-    import trimesh
-
-    m = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
-    v = torch.tensor(m.vertices, dtype=torch.float32)
-    return torch.tensor(m.faces), None, v, v * 1.01
 
 
 def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats: int = 20, warmup: int = 3) -> dict:
@@ -52,21 +38,25 @@ def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats
 
 def run(opts) -> int:
     """``opts``: the options of ``rmavatar bench avatar`` (gaussians, repeats, threads, body)."""
-    from rmavatar.avatar import Avatar, AvatarConfig
+    from rmavatar.avatar import AvatarConfig
+    from rmavatar.body import load_body_model
 
     if opts.threads:
         torch.set_num_threads(opts.threads)
-    faces, binding, template, verts = _mesh(opts.body)
+    body = load_body_model(opts.body)
     torch.manual_seed(0)
     pose = torch.randn(69) * 0.3
-    result = {"gaussians": opts.gaussians, "threads": torch.get_num_threads(), "faces": int(faces.shape[0])}
+    with torch.no_grad():
+        verts = body(None, torch.zeros(1, 3), pose[None], torch.zeros(1, 3)).vertices[0]
+    result = {"gaussians": opts.gaussians, "threads": torch.get_num_threads(), "body": body.spec,
+              "faces": int(body.faces.shape[0]), "rectifier": AvatarConfig().rectifier}
     for name, cfg in (
         ("no_rectifier", AvatarConfig(rectifier=False)),
         ("rectifier_float32", AvatarConfig()),
         ("rectifier_bfloat16", AvatarConfig(rectifier_precision="bfloat16")),
     ):
         cfg.placement, cfg.num_gaussians = "area", opts.gaussians
-        avatar = Avatar(faces, binding, template, cfg)
+        avatar = cfg.build(body)
         avatar.active_sh_degree.fill_(cfg.sh_degree)
         result[name] = time_avatar(avatar, verts, pose, opts.repeats)
     print(json.dumps(result, indent=2))

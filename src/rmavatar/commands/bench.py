@@ -159,7 +159,7 @@ def _avatar_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gaussians", type=int, default=25_000, help="Gaussian count (default 25000)")
     parser.add_argument("--repeats", type=int, default=20, help="timed repeats (default 20)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
-    parser.add_argument("--body", default=None, help="body model spec (e.g. anny); default: an icosphere mesh")
+    parser.add_argument("--body", default="anny", help="body model spec: anny, anny:PRESET or smpl:PATH (default anny)")
 
 
 def _render_options(parser: argparse.ArgumentParser) -> None:
