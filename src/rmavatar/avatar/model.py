@@ -22,7 +22,7 @@ from torch import nn
 
 from rmavatar.avatar.compose import compose_gaussians
 from rmavatar.avatar.geometry import FaceTable, face_table, same_quads, triangle_frames
-from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, rectifier_design, window_alpha
+from rmavatar.avatar.rectifier import DESIGNS, POSE_DIM, PRECISIONS, rectifier_design, window_alpha
 from rmavatar.avatar.rows import RowGathers, frame_points, posed_rows
 from rmavatar.body.base import HAND_POSE_DIM
 from rmavatar.render.gaussians import GaussianSet
@@ -69,10 +69,11 @@ class AvatarConfig:
     hand_pose: bool = False
     num_freqs: int = 6  # frequency bands of the rectifier's positional encoding (6 * num_freqs channels)
     hidden: int = 128  # width of the rectifier MLP's hidden layers
-    # Arithmetic of the rectifier's hidden layers: "float32", or "bfloat16" (faster on CPUs with bf16
-    # dot products, AVX512-BF16 / AMX, at about 3 significant digits; docs/model.md); outputs and
-    # gradients stay float32.
-    rectifier_precision: str = "float32"
+    # Arithmetic of the rectifier's hidden layers: "float32"; "bfloat16" (faster on CPUs with bf16 dot
+    # products, AVX512-BF16 / AMX, at about 3 significant digits: the same avatars, docs/model.md); or
+    # "auto", bfloat16 where the CPU has those products and float32 elsewhere (GPUs included). Outputs
+    # and gradients stay float32.
+    rectifier_precision: str = "auto"
     init_opacity: float = 0.1  # every Gaussian's opacity at the start, in (0, 1)
     init_color: tuple[float, float, float] = (0.5, 0.5, 0.5)  # every Gaussian's start RGB (unless build's init_colors)
     placement: str = "face"  # where Gaussians start: "face" (one per binding face) or "area" (see above)
@@ -108,8 +109,9 @@ class AvatarConfig:
             raise UserError(f"model.rectifier_mask_threshold must be in [0, 1), got {self.rectifier_mask_threshold}")
         if self.num_freqs < 1:
             raise UserError(f"model.num_freqs must be >= 1, got {self.num_freqs}")
-        if self.rectifier_precision not in ("float32", "bfloat16"):
-            raise UserError(f"model.rectifier_precision must be 'float32' or 'bfloat16', not {self.rectifier_precision!r}")
+        if self.rectifier_precision not in PRECISIONS:
+            raise UserError(f"model.rectifier_precision must be one of {', '.join(PRECISIONS)}, "
+                            f"not {self.rectifier_precision!r}")
         self.init_color = tuple(float(c) for c in self.init_color)
         if len(self.init_color) != 3:
             raise UserError(f"model.init_color must have 3 values, got {self.init_color}")

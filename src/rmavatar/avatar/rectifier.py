@@ -16,6 +16,7 @@ position, each face's masked pose, offsets in the triangle's frame in units of w
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -28,8 +29,17 @@ from rmavatar.utils import UserError
 from rmavatar.utils.device import constant, host_scalar, set_host_scalar
 
 POSE_DIM = 69
+PRECISIONS = ("auto", "float32", "bfloat16")  # the hidden layers' arithmetic (model.rectifier_precision)
 OUT_WIDTHS = (3, 3, 4)  # the output's columns: d_mu, d_s, d_r
 OUT_DIM = sum(OUT_WIDTHS)
+
+
+@functools.cache
+def cpu_multiplies_bf16() -> bool:
+    """Whether this CPU has bf16 dot products (AVX512-BF16 or AMX), where the rectifier's matrix
+    products in bf16 ran about 4x faster than in float32 (docs/model.md); elsewhere bf16 is emulated."""
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own probes
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
 
 def window_values(num_freqs: int, alpha: float) -> tuple[float, ...]:
@@ -187,10 +197,9 @@ class Rectifier(nn.Module):
 
     def __init__(self, num_freqs: int = 6, hidden: int = 128, pose_dim: int = POSE_DIM, precision: str = "float32"):
         super().__init__()
-        if precision not in ("float32", "bfloat16"):
-            raise ValueError(f"rectifier precision must be 'float32' or 'bfloat16', got {precision!r}")
-        # Hidden-layer arithmetic for float32 inputs (float64 inputs always run in float64).
-        self.compute_dtype = torch.bfloat16 if precision == "bfloat16" else torch.float32
+        if precision not in PRECISIONS:
+            raise ValueError(f"rectifier precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        self.precision = precision  # the hidden layers' arithmetic for float32 inputs (compute_dtype)
         self.num_freqs = num_freqs
         self.hidden = hidden
         self.pose_dim = pose_dim
@@ -205,6 +214,16 @@ class Rectifier(nn.Module):
         nn.init.zeros_(self.l5.bias)
         # Window position of the coarse-to-fine encoding; a buffer so checkpoints keep it.
         self.register_buffer("freq_alpha", torch.tensor(float(num_freqs)))
+
+    def compute_dtype(self, x: torch.Tensor) -> torch.dtype:
+        """The hidden layers' dtype for inputs like ``x``: theirs unless float32; for float32, bfloat16 with
+        ``precision`` "bfloat16", or "auto" on a CPU with bf16 dot products (:func:`cpu_multiplies_bf16`;
+        on a GPU "auto" stays float32)."""
+        if x.dtype != torch.float32 or self.precision == "float32":
+            return x.dtype
+        if self.precision == "auto" and not (x.device.type == "cpu" and cpu_multiplies_bf16()):
+            return torch.float32
+        return torch.bfloat16
 
     def set_frequency_alpha(self, alpha: float) -> None:
         set_host_scalar(self, "freq_alpha", alpha)
@@ -249,8 +268,7 @@ class Rectifier(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         pose = self._pose_rows(x, body_pose, pose_masks, group)
         gamma = self.encode(x)  # [N,36]
-        out = _FusedMLP.apply(gamma, pose, group, *self._weights(),
-                              self.compute_dtype if gamma.dtype == torch.float32 else gamma.dtype)
+        out = _FusedMLP.apply(gamma, pose, group, *self._weights(), self.compute_dtype(gamma))
         return out.split(OUT_WIDTHS, dim=1)  # one backward operation (a cat), not three slice ones
 
     def reference_forward(

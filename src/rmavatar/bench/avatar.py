@@ -39,6 +39,7 @@ def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats
 def run(opts) -> int:
     """``opts``: the options of ``rmavatar bench avatar`` (gaussians, repeats, threads, body)."""
     from rmavatar.avatar import AvatarConfig
+    from rmavatar.avatar.rectifier import cpu_multiplies_bf16
     from rmavatar.body import load_body_model
 
     if opts.threads:
@@ -49,10 +50,11 @@ def run(opts) -> int:
     with torch.no_grad():
         verts = body(None, torch.zeros(1, 3), pose[None], torch.zeros(1, 3)).vertices[0]
     result = {"gaussians": opts.gaussians, "threads": torch.get_num_threads(), "body": body.spec,
-              "faces": int(body.faces.shape[0]), "rectifier": AvatarConfig().rectifier}
+              "faces": int(body.faces.shape[0]), "rectifier": AvatarConfig().rectifier,
+              "cpu_multiplies_bf16": cpu_multiplies_bf16()}  # where "auto" (the default) takes bfloat16
     for name, cfg in (
         ("no_rectifier", AvatarConfig(rectifier=False)),
-        ("rectifier_float32", AvatarConfig()),
+        ("rectifier_float32", AvatarConfig(rectifier_precision="float32")),
         ("rectifier_bfloat16", AvatarConfig(rectifier_precision="bfloat16")),
     ):
         cfg.placement, cfg.num_gaussians = "area", opts.gaussians
