@@ -377,6 +377,27 @@ def test_fused_mlp_matches_its_reference(grouped):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
+def test_auto_precision_is_bfloat16_where_the_cpu_multiplies_it_and_float32_elsewhere():
+    from rmavatar.avatar.rectifier import cpu_multiplies_bf16
+
+    gen = torch.Generator().manual_seed(8)
+    mu, pose = torch.randn(300, 3, generator=gen), torch.randn(69, generator=gen) * 0.3
+    nets = {p: Rectifier(precision=p) for p in ("auto", "float32", "bfloat16")}
+    for net in nets.values():
+        net.load_state_dict(nets["float32"].state_dict())
+        with torch.no_grad():
+            net.l5.weight.copy_(torch.linspace(-0.05, 0.05, net.l5.weight.numel()).view_as(net.l5.weight))
+    auto = nets["auto"]
+    chosen = "bfloat16" if cpu_multiplies_bf16() else "float32"
+    assert auto.compute_dtype(mu) == getattr(torch, chosen) and auto.compute_dtype(mu.double()) == torch.float64
+    assert nets["float32"].compute_dtype(mu) == torch.float32 and nets["bfloat16"].compute_dtype(mu) == torch.bfloat16
+    got, want = torch.cat(auto(mu, pose), -1), torch.cat(nets[chosen](mu, pose), -1)
+    assert got.dtype == torch.float32 and torch.equal(got, want)
+    assert AvatarConfig().rectifier_precision == "auto"
+    with pytest.raises(UserError, match="rectifier_precision"):
+        AvatarConfig(rectifier_precision="float16")
+
+
 def test_bfloat16_rectifier_is_close_to_float32():
     gen = torch.Generator().manual_seed(9)
     r32 = Rectifier()
