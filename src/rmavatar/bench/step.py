@@ -215,57 +215,34 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         if prepare is not None:
             prepare(trainer)
         sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
-        # Time a late step: every SH band on and the coarse-to-fine window open. trainer.step() sets the
-        # avatar's progress from trainer.iteration, so that is what has to move (setting the avatar's
-        # progress here would be undone by the first step, which then timed an early, cheaper one).
-        trainer.iteration = late_iteration(cfg)
-
-        oks = []  # each step's device-side flag, read once at the end: no sync, no operation per step
-
-        def one_step():
-            oks.append(trainer.step()["ok"])
-            trainer.iteration += 1
-
-        for _ in range(warmup):
-            one_step()
-        clock = Clock(sync)
-        for _ in range(steps):
-            with clock:
-                one_step()
-        times = clock.wall
-        counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
-        if counts is not None:
-            counts["in_cuda_graphs"] = count_graphed_ops(trainer)
-        skipped = int((~torch.stack(oks)).sum())
-        if skipped:
-            raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
-        n = trainer.avatar.num_gaussians
-        rows = None if trainer.avatar.live_rows is None else trainer.avatar.capacity
+        clock, counts = _timed_steps(trainer, steps, warmup, count_steps, sync)
         graphs = {"used": trainer.graphs.enabled, "captures": trainer.graphs.captures,
                   "capture_s": trainer.graphs.capture_s, "off_reason": trainer.graphs.off_reason,
                   "failures": [list(f) for f in trainer.graphs.failures]}
+        n = trainer.avatar.num_gaussians
+        rows = None if trainer.avatar.live_rows is None else trainer.avatar.capacity
         stages = _stages(trainer, max(3, steps // 2), sync)
         # One density-control pass (densify + prune) with the statistics gathered so far.
         t0 = time.perf_counter()
         trainer.density.densify_and_prune()
         sync()
         density_s = time.perf_counter() - t0
-    step = statistics.median(times)
-    step_cpu = statistics.median(clock.cpu)
+        device_fields = device_info(trainer.device)
+    step, step_cpu = statistics.median(clock.wall), statistics.median(clock.cpu)
     in_step = {k: v for k, v in stages.items() if k != "body_forward"}
     return {
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "size": size,
         "gaussians": n,
         "capacity": rows,  # rows of the capacity buffers the Gaussians live in (None: not in buffers)
-        **device_info(trainer.device),
+        **device_fields,
         "threads": threads,
         "rectifier": rectifier,
         "refine_poses": refine_poses,
         "cuda_graphs": graphs,
         "step_median_s": step,
-        "step_min_s": min(times),
-        "step_max_s": max(times),
+        "step_min_s": min(clock.wall),
+        "step_max_s": max(clock.wall),
         "step_median_cpu_s": step_cpu,
         "iterations_per_s": 1.0 / step,
         "stages": stages,
@@ -277,6 +254,36 @@ def measure(data: str, size: int, steps: int, warmup: int, threads: int, device:
         "setup_s": setup_s,
         "target_s": 0.3,
     }
+
+
+def _timed_steps(trainer, steps: int, warmup: int, count_steps: int, sync) -> tuple:
+    """(a Clock of ``steps`` of ``trainer``'s steps after ``warmup``, the operation counts of ``count_steps``
+    more or None). The steps are late ones: every SH band on and the coarse-to-fine window open."""
+    import torch
+
+    # trainer.step() sets the avatar's progress from trainer.iteration, so that is what has to move
+    # (setting the avatar's progress here would be undone by the first step, which then timed an early,
+    # cheaper one).
+    trainer.iteration = late_iteration(trainer.cfg)
+    oks = []  # each step's device-side flag, read once at the end: no sync, no operation per step
+
+    def one_step():
+        oks.append(trainer.step()["ok"])
+        trainer.iteration += 1
+
+    for _ in range(warmup):
+        one_step()
+    clock = Clock(sync)
+    for _ in range(steps):
+        with clock:
+            one_step()
+    counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
+    if counts is not None:
+        counts["in_cuda_graphs"] = count_graphed_ops(trainer)
+    skipped = int((~torch.stack(oks)).sum())
+    if skipped:
+        raise RuntimeError(f"{skipped} benchmark step(s) were skipped (non-finite loss)")
+    return clock, counts
 
 
 def synthetic_subject(folder: Path, size: int) -> str:
