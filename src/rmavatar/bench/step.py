@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from rmavatar.bench.timing import Clock, median_time
+from rmavatar.bench.timing import Clock, median_time, timed
 
 
 def late_iteration(cfg) -> int:
@@ -271,12 +271,7 @@ def _timed_steps(trainer, steps: int, warmup: int, count_steps: int, sync) -> tu
         oks.append(trainer.step()["ok"])
         trainer.iteration += 1
 
-    for _ in range(warmup):
-        one_step()
-    clock = Clock(sync)
-    for _ in range(steps):
-        with clock:
-            one_step()
+    clock = timed(one_step, steps, sync, warmup)
     counts = count_step_ops(one_step, count_steps) if count_steps > 0 else None
     if counts is not None:
         counts["in_cuda_graphs"] = count_graphed_ops(trainer)

@@ -35,15 +35,20 @@ class Clock:
         return {"wall_s": statistics.median(self.wall), "cpu_s": statistics.median(self.cpu)}
 
 
-def median_time(fn, repeats: int, sync=None, warmup: int = 0) -> dict:
-    """Run ``fn()`` ``warmup`` times untimed, then ``repeats`` times timed; ``Clock.result()``."""
+def timed(fn, repeats: int, sync=None, warmup: int = 0) -> Clock:
+    """Run ``fn()`` ``warmup`` times untimed, then ``repeats`` times timed; the Clock of the timed runs."""
     for _ in range(warmup):
         fn()
     clock = Clock(sync)
     for _ in range(repeats):
         with clock:
             fn()
-    return clock.result()
+    return clock
+
+
+def median_time(fn, repeats: int, sync=None, warmup: int = 0) -> dict:
+    """``timed(...).result()``: the medians of ``repeats`` timed runs of ``fn()`` after ``warmup`` untimed."""
+    return timed(fn, repeats, sync, warmup).result()
 
 
 def machine_info() -> dict:
