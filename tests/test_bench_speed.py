@@ -120,11 +120,15 @@ def test_op_counter_counts_operations_views_and_syncs():
     assert (c.ops, c.syncs, dict(c.by_name)) == (1, 0, {"aten::add_.Tensor": 1})
 
 
-def test_tiny_avatar_bench_times_the_default_design_on_anny(capsys):
+def test_tiny_avatar_bench_times_the_default_design_on_anny(capsys, tmp_path):
     """``rmavatar bench avatar`` builds its avatars as training does (the default design is the local
-    rectifier, which needs the body's skinning weights: built from a bare mesh it could not run)."""
-    assert main(["bench", "avatar", "--gaussians", "30000", "--repeats", "1", "--threads", "1"]) == 0
+    rectifier, which needs the body's skinning weights: built from a bare mesh it could not run), and
+    writes what it prints to ``--json``."""
+    out = tmp_path / "avatar.json"
+    assert main(["bench", "avatar", "--gaussians", "30000", "--repeats", "1", "--threads", "1",
+                 "--json", str(out)]) == 0
     rep = json.loads(capsys.readouterr().out)
+    assert json.loads(out.read_text()) == rep
     assert rep["body"] == "anny:neutral" and rep["rectifier"] == "local" and rep["gaussians"] == 30000
     for name in ("no_rectifier", "rectifier_float32", "rectifier_bfloat16"):
         assert rep[name]["wall_median_s"] > 0 and math.isfinite(rep[name]["cpu_median_s"]), name

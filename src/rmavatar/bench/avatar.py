@@ -1,9 +1,9 @@
 """``rmavatar bench avatar``: the avatar's forward + backward (posing + rectifier), the part of a training
 step it owns, for the rectifier in float32 and bfloat16 and without a rectifier.
 
-    rmavatar bench avatar --gaussians 25000 --repeats 20 [--threads 2] [--body anny]
+    rmavatar bench avatar --gaussians 25000 --repeats 20 [--threads 2] [--body anny] [--json FILE]
 
-Prints one JSON object: median / min wall seconds and median process CPU seconds per step, for the
+Prints one JSON object (and writes it to ``--json FILE``): median / min wall seconds and median process CPU seconds per step, for the
 default rectifier design (``model.rectifier``) in float32 and bfloat16 and without a rectifier, each
 avatar built by its config on the body (as training builds it), posed in a random pose. The machine's other load shows in the
 wall times; CPU seconds (summed over threads) are steadier on a shared machine.
@@ -13,31 +13,31 @@ from __future__ import annotations
 
 import json
 import statistics
-import time
+from pathlib import Path
 
 import torch
+
+from rmavatar.bench.timing import timed
 
 
 def time_avatar(avatar, vertices: torch.Tensor, body_pose: torch.Tensor, repeats: int = 20, warmup: int = 3) -> dict:
     """Seconds per forward + backward of ``avatar(vertices, body_pose)`` with a loss over all outputs."""
-    walls, cpus = [], []
-    for i in range(warmup + repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
+
+    def step():
         g, extras = avatar.forward_with_extras(vertices, body_pose)
         loss = g.means.sum() + g.quats.sum() + g.scales.sum() + g.opacities.sum() + g.sh.sum()
         if extras.offsets is not None:
             loss = loss + sum(o.square().sum() for o in extras.offsets)
         loss.backward()
-        if i >= warmup:
-            walls.append(time.perf_counter() - t0)
-            cpus.append(time.process_time() - c0)
         avatar.zero_grad(set_to_none=True)
-    return {"wall_median_s": statistics.median(walls), "wall_min_s": min(walls),
-            "cpu_median_s": statistics.median(cpus)}
+
+    clock = timed(step, repeats, warmup=warmup)
+    return {"wall_median_s": statistics.median(clock.wall), "wall_min_s": min(clock.wall),
+            "cpu_median_s": statistics.median(clock.cpu)}
 
 
 def run(opts) -> int:
-    """``opts``: the options of ``rmavatar bench avatar`` (gaussians, repeats, threads, body)."""
+    """``opts``: the options of ``rmavatar bench avatar`` (gaussians, repeats, threads, body, json, overwrite)."""
     from rmavatar.avatar import AvatarConfig
     from rmavatar.avatar.rectifier import cpu_multiplies_bf16
     from rmavatar.body import load_body_model
@@ -62,4 +62,9 @@ def run(opts) -> int:
         avatar.active_sh_degree.fill_(cfg.sh_degree)
         result[name] = time_avatar(avatar, verts, pose, opts.repeats)
     print(json.dumps(result, indent=2))
+    if opts.json:
+        from rmavatar.utils.outputs import output_file
+
+        with output_file(opts.json, option="--json", overwrite=opts.overwrite) as t:
+            Path(t).write_text(json.dumps(result, indent=2))
     return 0

@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("rmavatar.commands.eval", "score a trained run on a dataset split: PSNR, SSIM, LPIPS per frame and mean, protocol in the JSON"),
     "train": ("rmavatar.commands.train", "fit an avatar to a dataset's training frames (checkpoints, resume, previews)"),
     "render": ("rmavatar.commands.render", "render a Gaussian scene (synthetic figure or 3DGS PLY) to a PNG, or a trained avatar's turntable video"),
-    "bench": ("rmavatar.commands.bench", "benchmarks: raster, step, speed, quality, avatar (times, ratios to references, metrics)"),
+    "bench": ("rmavatar.commands.bench", "benchmarks: raster, step, speed, quality, avatar, render, capture (times, ratios to references, metrics)"),
     "synth": ("rmavatar.commands.synth", "render the synthetic clothed subject (turning in an A-pose, novel poses) into a native dataset"),
     "capture": ("rmavatar.commands.capture", "your own video of one person -> a dataset with estimated poses (MediaPipe + body fit, offline)"),
     "batch": ("rmavatar.commands.batch", "train and evaluate many avatars from a JOBS.yaml on a Ray cluster or this machine; results tables"),

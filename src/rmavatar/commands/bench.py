@@ -160,6 +160,7 @@ def _avatar_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=20, help="timed repeats (default 20)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
     parser.add_argument("--body", default="anny", help="body model spec: anny, anny:PRESET or smpl:PATH (default anny)")
+    parser.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
 
 
 def _render_options(parser: argparse.ArgumentParser) -> None:
