@@ -119,6 +119,7 @@ CASES = {
                                             _folder(t, "w/synth-seed0-32") / "keep.txt"),
     ("bench step", "--json"): lambda t: (["bench", "step", "--json", str(_file(t, "b.json"))], t / "b.json"),
     ("bench speed", "--json"): lambda t: (["bench", "speed", "--json", str(_file(t, "b.json"))], t / "b.json"),
+    ("bench avatar", "--json"): lambda t: (["bench", "avatar", "--json", str(_file(t, "b.json"))], t / "b.json"),
     ("bench render", "--json"): lambda t: (["bench", "render", str(t / "run"), "--json", str(_file(t, "b.json"))],
                                            t / "b.json"),
     ("bench capture", "--json"): lambda t: (["bench", "capture", "--json", str(_file(t, "b.json"))], t / "b.json"),
