@@ -3,17 +3,17 @@ step it owns, for the rectifier in float32 and bfloat16 and without a rectifier.
 
     rmavatar bench avatar --gaussians 25000 --repeats 20 [--threads 2] [--body anny] [--json FILE]
 
-Prints one JSON object (and writes it to ``--json FILE``): median / min wall seconds and median process CPU seconds per step, for the
-default rectifier design (``model.rectifier``) in float32 and bfloat16 and without a rectifier, each
-avatar built by its config on the body (as training builds it), posed in a random pose. The machine's other load shows in the
-wall times; CPU seconds (summed over threads) are steadier on a shared machine.
+Prints one JSON object (and writes it to ``--json FILE``): median / min wall seconds and median process
+CPU seconds per step, for the default rectifier design (``model.rectifier``) in float32 and bfloat16
+and without a rectifier, each avatar built by its config on the body (as training builds it), posed in
+a random pose. The machine's other load shows in the wall times; CPU seconds (summed over threads) are
+steadier on a shared machine.
 """
 
 from __future__ import annotations
 
 import json
 import statistics
-from pathlib import Path
 
 import torch
 
@@ -63,8 +63,7 @@ def run(opts) -> int:
         result[name] = time_avatar(avatar, verts, pose, opts.repeats)
     print(json.dumps(result, indent=2))
     if opts.json:
-        from rmavatar.utils.outputs import output_file
+        from rmavatar.utils.outputs import write_json
 
-        with output_file(opts.json, option="--json", overwrite=opts.overwrite) as t:
-            Path(t).write_text(json.dumps(result, indent=2))
+        write_json(opts.json, result, overwrite=opts.overwrite)
     return 0
