@@ -437,7 +437,7 @@ def test_stale_temporaries_of_killed_runs_are_swept(tmp_path):
 
 
 def test_overwrite_keeps_files_rmavatar_did_not_write(tmp_path, monkeypatch):
-    from rmavatar.utils import outputs
+    from rmavatar.utils import UserError, outputs
 
     monkeypatch.setattr(outputs, "_registry", lambda: tmp_path / "registry.json")
     folder = tmp_path / "out"
@@ -453,6 +453,10 @@ def test_overwrite_keeps_files_rmavatar_did_not_write(tmp_path, monkeypatch):
         (tmp / "a").write_text("x")
     outputs.write_json(tmp_path / "r.json", {"a": 1})
     outputs.write_json(tmp_path / "r.json", {"a": 2})  # its own file: replaced without --overwrite
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 2}
+    # a value JSON cannot hold: a clear error naming the file, and the file as it was
+    with pytest.raises(UserError, match=r"--json .*r\.json: not written: .*not a finite number"):
+        outputs.write_json(tmp_path / "r.json", {"a": {"b": float("nan")}})
     assert json.loads((tmp_path / "r.json").read_text()) == {"a": 2}
 
 

@@ -14,7 +14,6 @@ Variants (paper §4.4): ``full``; ``no_rectifier`` ("w/o GauRec": Gaussians fixe
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import re
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 
 from rmavatar.utils import UserError
-from rmavatar.utils.outputs import output_file
+from rmavatar.utils.outputs import write_json
 
 # rmavatar.train.config.ABLATIONS
 VARIANTS = ("full", "no_rectifier", "no_offset_loss", "no_scaling_loss", "local_rectifier")
@@ -207,7 +206,6 @@ def run(args: argparse.Namespace) -> int:
     table = format_table(result)
     print("\n" + table)
     if args.json:
-        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp:
-            tmp.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(args.json, result, overwrite=args.overwrite)
         print(f"\nwrote {args.json}")
     return 0

@@ -9,7 +9,6 @@ the same configuration, and reported as a ratio.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -279,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from rmavatar.render import rasterize
-    from rmavatar.utils.outputs import output_file
+    from rmavatar.utils.outputs import write_json
 
     configs = _check_args(args)
     cuda = args.device.startswith("cuda")
@@ -295,7 +294,6 @@ def run(args: argparse.Namespace) -> int:
         reference = _bench_reference(args, sync, fast)
     report = _report(args, results, reference, load_before)
     if args.json:
-        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp:
-            tmp.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report, overwrite=args.overwrite)
         print(f"wrote {args.json}")
     return 0

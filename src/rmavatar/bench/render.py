@@ -16,8 +16,6 @@ body, at ``--size`` x ``--size``.
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 
 def _poses(trained, motion: str | None):
@@ -128,9 +126,8 @@ def run(args: argparse.Namespace) -> int:
           f"({how}), colours + rasterizing {1e3 * res['raster_s']:.2f} ms")
     print("  eager, stage by stage: " + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in res["stages_s"].items()))
     if args.json:
-        from rmavatar.utils.outputs import output_file
+        from rmavatar.utils.outputs import write_json
 
-        with output_file(args.json, option="--json", overwrite=args.overwrite) as t:
-            Path(t).write_text(json.dumps(res, indent=2))
+        write_json(args.json, res, overwrite=args.overwrite)
         print(f"wrote {args.json}")
     return 0

@@ -22,7 +22,6 @@ Every ratio is ``reference time / rmavatar time``: above 1 means rmavatar is fas
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -278,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
     from rmavatar.bench.step import synthetic_subject
     from rmavatar.bench.timing import machine_info
     from rmavatar.utils.device import set_threads
-    from rmavatar.utils.outputs import output_file
+    from rmavatar.utils.outputs import write_json
 
     t_start = time.perf_counter()
     load_start = list(os.getloadavg())
@@ -320,7 +319,6 @@ def run(args: argparse.Namespace) -> int:
         raise RuntimeError(f"a speed ratio is not a positive finite number: {ratios}")
     _print(report)
     if args.json:
-        with output_file(args.json, option="--json", overwrite=args.overwrite) as tmp_path:
-            Path(tmp_path).write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report, overwrite=args.overwrite)
         print(f"wrote {args.json}")
     return 0

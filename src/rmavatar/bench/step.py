@@ -15,7 +15,6 @@ rectifier MLP (fwd+bwd), rasterizer forward and backward, losses (L1 + SSIM + LP
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -335,9 +334,8 @@ def run(args: argparse.Namespace) -> int:
                   + ", ".join(f"{k} {v}" for k, v in c["syncs_by_op"].items()))
     print(f"  machine load average   {', '.join(f'{x:.1f}' for x in res['machine']['load_average'])}")
     if args.json:
-        from rmavatar.utils.outputs import output_file
+        from rmavatar.utils.outputs import write_json
 
-        with output_file(args.json, option="--json", overwrite=args.overwrite) as t:
-            Path(t).write_text(json.dumps(res, indent=2))
+        write_json(args.json, res, overwrite=args.overwrite)
         print(f"wrote {args.json}")
     return 0

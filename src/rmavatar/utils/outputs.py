@@ -296,7 +296,12 @@ def output_file(path: str | os.PathLike, *, option: str = "output", overwrite: b
 
 
 def write_json(path: str | os.PathLike, doc, *, option: str = "--json", overwrite: bool = False) -> None:
-    """``doc`` as indented JSON (no NaN) to a single-file output."""
-    text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
+    """``doc`` as indented JSON to a single-file output. A NaN or infinity (which JSON cannot hold and
+    strict readers refuse) is a UserError naming the file, raised before anything is written."""
+    try:
+        text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
+    except ValueError as exc:
+        raise UserError(f"{option} {path}: not written: the results hold a value that is not a finite number "
+                        f"({exc})") from None
     with output_file(path, option=option, overwrite=overwrite) as tmp:
         tmp.write_text(text)
