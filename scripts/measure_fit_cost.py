@@ -15,6 +15,7 @@ the rest is torch operations and Python.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import time
@@ -64,13 +65,10 @@ def main() -> None:
             for name, (copy, table) in variants.items():
                 fit.drawable_copy, model.face_table = copy, table
                 timing = stages is not None and name == today and repeat > 0
-                if timing:
-                    stages.on()
-                start = time.perf_counter()
-                fit.fit_poses(run.avatar, run.body, poses, None, frames, torch.ones(3), cfg)
-                times[name].append((time.perf_counter() - start) / (args.frames * args.steps))
-                if timing:
-                    stages.off()
+                with stages if timing else contextlib.nullcontext():
+                    start = time.perf_counter()
+                    fit.fit_poses(run.avatar, run.body, poses, None, frames, torch.ones(3), cfg)
+                    times[name].append((time.perf_counter() - start) / (args.frames * args.steps))
     finally:
         fit.drawable_copy, model.face_table = model.drawable_copy, face_table
     drawable = model.drawable_copy(run.avatar).num_gaussians
@@ -84,8 +82,8 @@ def main() -> None:
 
 
 class _StageClock:
-    """Times the numba kernels of a pose fit (seconds per kernel) while :meth:`on`; the modules' own
-    functions are put back by :meth:`off`."""
+    """Times the numba kernels of a pose fit (seconds per kernel, summed) inside ``with``; the modules' own
+    functions are put back on leaving it."""
 
     def __init__(self):
         import rmavatar.avatar.face_kernels as face_kernels
@@ -106,13 +104,15 @@ class _StageClock:
             return out
         return call
 
-    def on(self) -> None:
+    def __enter__(self) -> "_StageClock":
         for module, name, kernel in self.kernels:
             setattr(module, name, self._timed(name, kernel))
+        return self
 
-    def off(self) -> None:
+    def __exit__(self, *exc) -> bool:
         for module, name, kernel in self.kernels:
             setattr(module, name, kernel)
+        return False
 
     def totals(self) -> dict:
         return dict(sorted(self.seconds.items(), key=lambda kv: -kv[1]))
