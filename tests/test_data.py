@@ -705,3 +705,24 @@ def test_peoplesnapshot_splits_file_types(tmp_path):
     (root / "splits.yaml").write_text("train: [0, 2]\n", encoding="utf-16")
     with pytest.raises(UserError, match=r"splits file .*splits.yaml is UTF-16"):
         load_dataset(root)
+
+
+def test_native_same_instant_roundtrip_and_checks(tmp_path):
+    """meta.yaml's same_instant (a second camera's split: for each of its frames, the main camera's frame of
+    the same instant) is written, read into Dataset.same_instant, and refused when it names an unknown
+    split, has the wrong length or points outside the frames."""
+    out = tmp_path / "nat"
+    _, _, cams, params = make_native(tmp_path / "first")
+    frames = ([np.zeros((6, 8, 3))] * 6, [np.zeros((6, 8))] * 6)
+    meta = NativeMeta(name="x", splits={"train": [0, 1, 2], "novel_view": [3, 4, 5]},
+                      same_instant={"novel_view": [0, 1, 2]})
+    write_native(out, meta, cams, params, *frames, progress=False)
+    assert load_dataset(out).same_instant == {"novel_view": [0, 1, 2]}
+    assert load_dataset(tmp_path / "first").same_instant == {}
+    for value, needle in (("{test: [0, 1, 2]}", "'same_instant' names split 'test', which the dataset does not have"),
+                          ("{novel_view: [0, 1]}", "same_instant 'novel_view' must list one frame index per frame"),
+                          ("{novel_view: [0, 1, 9]}", r"same_instant 'novel_view' refers to frames \[9\] outside 0..5"),
+                          ("[0, 1, 2]", "'same_instant' must map split names to lists of frame indices")):
+        _edit_meta(out, "same_instant", value)
+        with pytest.raises(UserError, match=needle):
+            load_dataset(out)

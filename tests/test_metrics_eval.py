@@ -220,6 +220,37 @@ def test_runs_own_data_is_recognised_by_resolved_path(tmp_path, monkeypatch):
     assert _choose_poses(ev, None, progress=False)[1] == "the dataset's"
 
 
+def test_another_cameras_view_takes_the_refined_poses_of_its_instants(tmp_path, monkeypatch):
+    """A novel_view split of another camera (same_instant: for each of its frames, the training frame of
+    the same instant) is posed as the run refined those instants; --fit-poses on it is refused (it would
+    fit each pose to the very view it scores)."""
+    from types import SimpleNamespace
+
+    from rmavatar.body import PoseSequence
+    from rmavatar.evaluate.fit import PoseFitConfig
+    from rmavatar.evaluate.run import _choose_poses, _Evaluation
+
+    data = tmp_path / "DATA"
+    data.mkdir()
+    (data / "meta.yaml").write_text("name: d\n")
+    p = params(3, 1)
+    refined = PoseSequence.from_arrays(p["global_orient"] + 0.1, p["body_pose"] + 0.2, p["transl"])
+    run = SimpleNamespace(training_poses=refined, training_split="train", data_spec=str(data), config={})
+    dataset = SimpleNamespace(root=data, splits={"train": [0, 2, 4], "novel_view": [10, 11]},
+                              same_instant={"novel_view": [4, 2]})
+    q = {k: v[:2] for k, v in p.items()}
+    ev = _Evaluation(run, dataset, str(data), "novel_view", 2, 2, {**q, "index": np.array([10, 11])},
+                     torch.device("cpu"), torch.ones(3))
+    poses, source, _ = _choose_poses(ev, None, progress=False)
+    assert source.startswith("refined in training, of the same instants")
+    assert torch.equal(poses.body_pose, refined.body_pose[[2, 1]])
+    from rmavatar.evaluate import run as run_module
+
+    monkeypatch.setattr(run_module, "_open", lambda *a: SimpleNamespace(dataset=SimpleNamespace(same_instant={"test": [0]})))
+    with pytest.raises(UserError, match="--fit-poses on split test would fit each pose to the very view it scores"):
+        run_module.evaluate_run(tmp_path, split="test", fit=PoseFitConfig(), progress=False)
+
+
 def test_options_without_effect_are_refused(tmp_path, capsys):
     """Contradicting options, options that only matter beside another, and one path named as both
     outputs are errors before any work (nothing is written)."""

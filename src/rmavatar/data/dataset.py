@@ -75,7 +75,9 @@ class Dataset:
     body (a body preset such as "anny:female" or None), fps (None where unknown), root (the folder),
     poses_estimated (True when the poses were estimated from the video alone, by ``rmavatar capture``),
     body_offsets ([V] float32 metres along the Anny body's rest normals: a shape fitted to the person by
-    ``rmavatar capture``; None: the preset's shape),
+    ``rmavatar capture``; None: the preset's shape), same_instant (split -> for each of its frames, the
+    source index of the frame of the same instant taken by the main camera: a calibrated second camera's
+    split; empty for most datasets),
     splits (split -> list of source frame indices), source_size and image_size ((width, height) before
     and after resizing).
     ``frame(split, i)`` takes the position ``i`` in the split (0 <= i < num_frames(split)); the returned
@@ -86,8 +88,9 @@ class Dataset:
                  source_size: tuple[int, int], gender: str | None = None, body: str | None = None,
                  fps: float | None = None, size=None, cache_mb: float = 1024.0,
                  mask_reader: Callable[[Path], np.ndarray] = read_mask, poses_estimated: bool = False,
-                 body_offsets: np.ndarray | None = None):
+                 body_offsets: np.ndarray | None = None, same_instant: dict[str, list[int]] | None = None):
         self.kind = kind
+        self.same_instant = dict(same_instant or {})
         self.body_offsets = None if body_offsets is None else np.asarray(body_offsets, np.float32)
         self.poses_estimated = bool(poses_estimated)
         self.name = name

@@ -4,7 +4,9 @@ A folder::
 
     meta.yaml     format: rmavatar-native, version: 1, name, gender, body, fps, width, height,
                   num_frames, splits: {train: [frame indices], val: [...], test: [...], novel_pose: [...]},
-                  poses: given | estimated (optional, default given), extra: {free-form provenance}
+                  poses: given | estimated (optional, default given), extra: {free-form provenance},
+                  same_instant: {split: [frame indices]} (optional: for each frame of a split seen by
+                  another camera, the frame of the same instant the main camera took; see docs/data.md)
     cameras.npz   K [N,3,3] or [3,3] (one camera for all frames), viewmat [N,4,4] or [4,4]
                   (world-to-camera, OpenCV axes, metres); float32
     smpl.npz      betas [N,10] or [10], global_orient [N,3], body_pose [N,69], transl [N,3]; float32;
@@ -56,7 +58,10 @@ class NativeMeta:
     fps: the video's frame rate; gender: "male", "female", "neutral" or None (picks the SMPL file);
     body: a body preset the data was made with (e.g. "anny:female"), or None;
     poses_estimated: the poses were estimated from the video alone (``rmavatar capture``);
-    extra: free-form provenance (tracker, synth seed, ...) kept verbatim.
+    extra: free-form provenance (tracker, synth seed, ...) kept verbatim;
+    same_instant: split -> for each of its frames, the frame of the same instant taken by the main camera
+    (a calibrated second camera's frames, ``rmavatar capture --novel-view``); evaluation poses such a
+    frame as the training run posed that instant.
     """
 
     name: str
@@ -66,12 +71,13 @@ class NativeMeta:
     body: str | None = None
     poses_estimated: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
+    same_instant: dict[str, list[int]] = field(default_factory=dict)
 
 
 def _as_meta(meta: NativeMeta | Mapping) -> NativeMeta:
     if isinstance(meta, NativeMeta):
         return meta
-    known = {"name", "splits", "fps", "gender", "body", "poses_estimated", "extra"}
+    known = {"name", "splits", "fps", "gender", "body", "poses_estimated", "extra", "same_instant"}
     unknown = set(meta) - known
     if unknown:
         raise UserError(f"unknown meta keys {sorted(unknown)} (allowed: {sorted(known)})")
@@ -177,6 +183,29 @@ def _check_splits(splits: Mapping, n: int, where: str) -> dict[str, list[int]]:
     return out
 
 
+def _check_same_instant(same: Mapping | None, splits: dict[str, list[int]], n: int, where: str) -> dict[str, list[int]]:
+    """meta's ``same_instant`` checked: each key a split, each list one frame index in 0..n-1 per frame of
+    that split."""
+    if same is None:
+        return {}
+    if not isinstance(same, Mapping):
+        raise UserError(f"{where}: 'same_instant' must map split names to lists of frame indices, got {_shown(same)}")
+    out = {}
+    for name, idx in same.items():
+        if name not in splits:
+            raise UserError(f"{where}: 'same_instant' names split '{name}', which the dataset does not have "
+                            f"(splits: {', '.join(splits)})")
+        if not isinstance(idx, (list, tuple, np.ndarray)) or len(idx) != len(splits[name]):
+            raise UserError(f"{where}: same_instant '{name}' must list one frame index per frame of split "
+                            f"'{name}' ({len(splits[name])}), got {_shown(idx)}")
+        idx = [_frame_index(i, f"{where}: same_instant '{name}'") for i in idx]
+        bad = [i for i in idx if not 0 <= i < n]
+        if bad:
+            raise UserError(f"{where}: same_instant '{name}' refers to frames {bad[:5]} outside 0..{n - 1}")
+        out[str(name)] = idx
+    return out
+
+
 def _frame_index(value, where: str) -> int:
     """A frame index: an integer (numpy's too; an integral float is accepted), never true/false or text."""
     if isinstance(value, (float, np.floating)) and float(value).is_integer():
@@ -265,6 +294,7 @@ def write_native(out_dir: str | os.PathLike, meta: NativeMeta | Mapping, cameras
         raise UserError("write_native: no frames")
     K, V, cam_size = _stack_cameras(cameras, n)
     splits = _check_splits(meta.splits, n, "write_native")
+    _check_same_instant(meta.same_instant, splits, n, "write_native")
     if meta.gender is not None and meta.gender not in GENDERS:
         raise UserError(f"write_native: gender must be one of {GENDERS} or None, got {meta.gender!r}")
     _check_fields({"name": meta.name, "gender": meta.gender, "body": meta.body, "fps": meta.fps,
@@ -284,6 +314,7 @@ def write_tables(folder: Path, meta: NativeMeta, K: np.ndarray, viewmat: np.ndar
     (frames of ``size`` (W, H), ``splits``)."""
     p = _check_params(params, where)
     n = p["global_orient"].shape[0]
+    _check_same_instant(meta.same_instant, splits, n, where)
     np.savez(folder / "cameras.npz", K=np.asarray(K, np.float32), viewmat=np.asarray(viewmat, np.float32))
     np.savez(folder / "smpl.npz", **p)
     with open(folder / "meta.yaml", "w") as f:
@@ -361,6 +392,7 @@ def _meta_doc(meta: NativeMeta, size: tuple[int, int], n: int, splits: dict[str,
         "num_frames": int(n),
         "splits": splits,
         "poses": POSE_SOURCES[bool(meta.poses_estimated)],
+        **({"same_instant": _plain(meta.same_instant)} if meta.same_instant else {}),
         "extra": _plain(meta.extra),
     }
 
@@ -381,7 +413,7 @@ def _plain(value):
 
 
 META_KEYS = ("format", "version", "name", "gender", "body", "fps", "width", "height", "num_frames", "splits",
-             "poses", "extra")
+             "poses", "same_instant", "extra")
 REQUIRED_KEYS = ("name", "width", "height", "num_frames", "splits")
 
 
@@ -413,6 +445,7 @@ def read_meta(root: Path) -> dict:
     for key in ("width", "height", "num_frames"):
         doc[key] = _positive_int(doc[key], str(path), key)
     doc["splits"] = _check_splits(doc["splits"], doc["num_frames"], str(path))
+    doc["same_instant"] = _check_same_instant(doc.get("same_instant"), doc["splits"], doc["num_frames"], str(path))
     doc.setdefault("poses", "given")
     return doc
 
@@ -467,7 +500,8 @@ def open_native(root: Path, size=None, cache_mb: float = 1024.0, **options) -> D
     return Dataset(kind="native", name=doc["name"], root=root, records=records,
                    source_size=(width, height), gender=doc.get("gender"), body=doc.get("body"),
                    fps=doc.get("fps"), size=size, cache_mb=cache_mb,
-                   poses_estimated=doc["poses"] == "estimated", body_offsets=p.get("body_offsets"))
+                   poses_estimated=doc["poses"] == "estimated", body_offsets=p.get("body_offsets"),
+                   same_instant=doc["same_instant"])
 
 
 def _listing(folder: Path) -> set[str]:

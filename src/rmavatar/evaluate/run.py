@@ -118,6 +118,10 @@ def evaluate_run(
         out_dir = Path(out_dir)
         check_images_dir(out_dir, overwrite)
     ev = _open(run_dir, data, split, bg, size, device, max_frames)
+    if fit is not None and split in ev.dataset.same_instant:
+        raise UserError(f"--fit-poses on split {split} would fit each pose to the very view it scores: that "
+                        f"split's frames are another camera's views of the clip's instants, posed as the run "
+                        f"posed those instants (from the training camera); score it without --fit-poses")
     poses, pose_source, errors = _choose_poses(ev, fit, progress)
     with contextlib.ExitStack() as stack:
         # Images go to a temporary folder that replaces out_dir only once every frame is done.
@@ -166,8 +170,14 @@ def _choose_poses(ev: _Evaluation, fit, progress: bool):
     from rmavatar.data.registry import same_dataset
 
     # The run's own data is recognised by its resolved path ('DATA/', './DATA' and 'DATA' are one dataset).
-    if run.training_poses is not None and ev.split == run.training_split and same_dataset(ev.spec, run.data_spec):
+    own = run.training_poses is not None and same_dataset(ev.spec, run.data_spec)
+    if own and ev.split == run.training_split:
         poses, pose_source = run.training_poses, "refined in training"
+    elif own and ev.split in ev.dataset.same_instant:  # another camera's view of training instants
+        where = _training_positions(ev.dataset, run.training_split, ev.split)
+        if where is not None:
+            poses = run.training_poses.select(torch.as_tensor(where))
+            pose_source = "refined in training, of the same instants (seen by the training camera)"
     if fit is not None and fit.smooth and pose_source == "the dataset's":
         poses = smooth_poses(poses, params["index"], fit.smooth)  # over the whole split, before the first n
         pose_source += f", averaged over +-{fit.smooth} frames"
@@ -186,6 +196,14 @@ def _choose_poses(ev: _Evaluation, fit, progress: bool):
         truth = truth.select(slice(0, n))
         errors = {"given": pose_error(given.select(slice(0, n)), truth), "used": pose_error(poses, truth)}
     return poses, pose_source, errors
+
+
+def _training_positions(dataset, train_split: str, split: str) -> list[int] | None:
+    """For each frame of ``split``, the position in ``train_split`` of the frame taken at the same instant
+    (the dataset's ``same_instant``), or None when one of them is not a training frame."""
+    order = {index: k for k, index in enumerate(dataset.splits.get(train_split, []))}
+    where = [order.get(i) for i in dataset.same_instant[split]]
+    return None if None in where else where
 
 
 @torch.no_grad()
