@@ -42,10 +42,10 @@ def test_bench_capture_reports_stages_and_quality(turn, tmp_path, capsys):
     r = json.loads(out.read_text())
     assert r["frames_decoded"] == 6 and r["frames_with_person"] == 6 and r["share_with_person"] == 1.0
     per = r["seconds_per_frame"]
-    assert set(per) == {"decode", "landmarks", "masks", "fit", "shape", "write", "other", "total"}
+    assert set(per) == {"decode", "landmarks", "masks", "fit", "shape", "views", "write", "other", "total"}
     assert all(v >= 0 for k, v in per.items() if k != "other")
     assert per["total"] == pytest.approx(sum(v for k, v in per.items() if k != "total"), abs=1e-3)
-    assert set(r["cpu_seconds_per_frame"]) == {"decode", "landmarks", "masks", "fit", "shape", "write"}
+    assert set(r["cpu_seconds_per_frame"]) == {"decode", "landmarks", "masks", "fit", "shape", "views", "write"}
     assert 0.5 < r["landmarks_visible"] <= 1 and 0.5 < r["silhouette_iou"] <= 1
     assert 0.5 < r["silhouette_iou_preset"] <= 1 and r["shape"]["frames"] == 6 and r["shape"]["max_mm"] > 0
     assert r["frame_size"] == [128, 128] and r["detection_size"] == [128, 128]

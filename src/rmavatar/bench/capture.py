@@ -7,7 +7,8 @@ frame with its white background, 80 frames at 7.5 frames/s, captured with its tr
 made once in --work and reused.
 
 Reported, per frame decoded: wall-clock seconds of each stage of the capture (decode, landmarks, masks,
-fit, shape: the body's offsets and building the body with them, write; ``other``: loading the body and
+fit, shape: the body's offsets and building the body with them, views: other calibrated cameras'
+frames, write; ``other``: loading the body and
 MediaPipe, the frames looked at first are in decode and landmarks) and the same as this process's CPU
 seconds (less sensitive to other load on the machine; ffmpeg's decoding runs in a process of its own
 and is not in them). Then: the share of frames with a person; the share of MediaPipe's 33 landmarks
@@ -78,14 +79,19 @@ def _iou_size(data: Path, side: int) -> tuple[dict, int, int]:
 
 
 def captured_masks(data: Path, side: int = IOU_SIDE) -> np.ndarray:
-    """The masks of a captured dataset [N,h,w] float 0..1, at most ``side`` pixels on the longer side, in
-    dataset frame order (those :func:`body_silhouettes` is compared with)."""
+    """The masks of a captured dataset's clip frames [N,h,w] float 0..1, at most ``side`` pixels on the
+    longer side, in dataset frame order (those :func:`body_silhouettes` is compared with)."""
     from rmavatar.data.io import read_mask, resample
 
     _, tw, th = _iou_size(data, side)
-    with np.load(data / "smpl.npz") as z:
-        n = z["global_orient"].shape[0]
-    return np.stack([resample(read_mask(data / "masks" / f"{i:05d}.png"), tw, th) for i in range(n)])
+    return np.stack([resample(read_mask(data / "masks" / f"{i:05d}.png"), tw, th) for i in range(_clip_frames(data))])
+
+
+def _clip_frames(data: Path) -> int:
+    """How many of a captured dataset's frames are the clip's own (the main camera's; other calibrated
+    cameras' frames, split novel_view, come after them)."""
+    with np.load(data / "capture.npz") as z:
+        return len(z["source_index"])
 
 
 def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> np.ndarray:
@@ -108,7 +114,7 @@ def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> np.ndarr
     if offsets is True:
         offsets = stored
     body = load_body_model(meta["body"], offsets=None if offsets is False else offsets)
-    n = params["global_orient"].shape[0]
+    n = _clip_frames(data)
     betas = None
     if int(getattr(body, "num_betas", 0)):
         betas = params["betas"].reshape(-1, 10)[:, : body.num_betas].expand(n, -1)
@@ -116,7 +122,7 @@ def body_silhouettes(data: Path, side: int = IOU_SIDE, offsets=True) -> np.ndarr
     sil = []
     with torch.no_grad():
         for start in range(0, n, 32):
-            sl = slice(start, start + 32)
+            sl = slice(start, min(start + 32, n))
             out = body(None if betas is None else betas[sl], params["global_orient"][sl], params["body_pose"][sl],
                        params["transl"][sl])
             for v in out.vertices.numpy().astype(np.float64):

@@ -3,9 +3,10 @@ dataset with estimated poses, ready for ``rmavatar train``.
 
 Steps: a few frames spread over the clip are looked at first, and a clip with no person or two in
 them is refused before the full pass; then every frame is decoded (subsampled, resized), MediaPipe
-finds the person's landmarks and mask in it at a working size (the mask then brought to the frame's
-size and snapped to its colour edges, :mod:`rmavatar.capture.matte`); frames without a person, or with
-a second one, are dropped and reported; each frame kept is written once, as the dataset's own files;
+finds the person's landmarks and mask in it at a working size; frames without a person, or with a
+second one, are dropped and reported; each frame kept is written as the dataset's own image file; then
+the clip's background plate is made from frames spread over it (the camera is static) and every mask is
+brought to the frame's size and snapped to the person's edges against it (:mod:`rmavatar.capture.matte`);
 the body is fitted to all frames at once (:mod:`rmavatar.capture.fit`), then (Anny) its shape to the
 person's masks (:mod:`rmavatar.capture.shape`); the dataset is completed with
 a contact sheet of the fit. Any failure leaves nothing behind: frames wait in a temporary folder
@@ -61,7 +62,10 @@ class CaptureConfig:
     field of view in degrees, or focal: pixels (of the output frames), else DEFAULT_FOCAL_LONG_SIDE;
     fps: keep at most this many frames per second (None: all); size: longer side of the frames
     written (None: the source's); frames: only the first this many frames kept (None: all);
-    test_fraction: the tail of the clip held out as the test split;
+    test_fraction: the tail of the clip held out as the test split; val_every: of the frames before it,
+    every val_every-th held out as split val (0: none); calibration: a rig's calibration file whose
+    camera ``camera`` (None: named like the video) gives the intrinsics, and whose other cameras film
+    ``novel_views`` (synchronised videos, ``VIDEO[@CAMERA]``) for a novel_view split;
     device: "auto", "cpu", "cuda"."""
 
     body: str = "anny"  # body model fitted: "anny", "anny:PRESET" or "smpl:PATH"
@@ -71,6 +75,10 @@ class CaptureConfig:
     size: int | None = None  # longer side in pixels of the frames written (None: the source's)
     frames: int | None = None  # use only the first this many of the frames kept (None: all)
     test_fraction: float = 0.2  # tail of the clip held out as the test split
+    val_every: int = 0  # of the frames before the test tail, every this many-th held out as split val (0: none)
+    calibration: str | None = None  # a rig's calibration file (TOML or Qualisys): the camera's intrinsics
+    camera: str | None = None  # the input's camera in the calibration (None: the one named like the video)
+    novel_views: list[str] = field(default_factory=list)  # other calibrated videos, VIDEO[@CAMERA]: split novel_view
     device: str = "auto"  # where the fit runs: "auto", "cpu" or "cuda"
     fit: BodyFitConfig = field(default_factory=BodyFitConfig)  # the body fit's weights and schedule
     # the fingers' fit (None: not captured, the body's relaxed hands); bodies without fingers skip it
@@ -82,6 +90,12 @@ class CaptureConfig:
     def check(self) -> None:
         if self.fov is not None and self.focal is not None:
             raise UserError("give --fov or --focal, not both")
+        if self.calibration is not None and (self.fov is not None or self.focal is not None):
+            raise UserError("give --calibration or --fov / --focal, not both (the calibration holds the focal length)")
+        if self.calibration is None and (self.camera is not None or self.novel_views):
+            raise UserError("--camera and --novel-view need --calibration (the file that places the cameras)")
+        if self.val_every < 0 or self.val_every == 1:
+            raise UserError(f"--val-every must be 0 (none) or at least 2, got {self.val_every}")
         if self.fov is not None and not (math.isfinite(self.fov) and FOV_RANGE[0] <= self.fov <= FOV_RANGE[1]):
             raise UserError(f"--fov {self.fov:g} is not a camera's horizontal field of view: use degrees "
                             f"between {FOV_RANGE[0]:g} and {FOV_RANGE[1]:g} (a phone's main camera: "
@@ -119,7 +133,7 @@ def intrinsics(width: int, height: int, fov: float | None = None, focal: float |
 
 
 DATASET_KIND = "capture-dataset"
-DATASET_NAMES = ("meta.yaml", "images", "masks", "*.npz", "contact_sheet.png")
+DATASET_NAMES = ("meta.yaml", "images", "masks", "*.npz", "contact_sheet.png", "background.png")
 
 
 def check_out(out: Path, source: Path, overwrite: bool = False) -> None:
@@ -133,7 +147,7 @@ def check_out(out: Path, source: Path, overwrite: bool = False) -> None:
     check_output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES)
 
 
-STAGES = ("decode", "landmarks", "masks", "fit", "shape", "write")
+STAGES = ("decode", "landmarks", "masks", "fit", "shape", "views", "write")
 
 
 class _Stages:
@@ -269,12 +283,10 @@ def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, s
     from rmavatar.capture.detect import Detector
     from rmavatar.capture.hands import HandDetector
     from rmavatar.capture.frames import output_size, read_frames, shrink
-    from rmavatar.capture.matte import refine_mask
     from rmavatar.data.dataset import target_size
-    from rmavatar.data.io import resample, to_uint8
+    from rmavatar.data.io import to_uint8
 
     size = output_size(source, cfg.size)
-    small = target_size(*size, min(FIT_SIDE, max(size)))
     clip = _Clip()
     writer = _FrameWriter(scratch)
     try:
@@ -299,13 +311,8 @@ def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, s
                     if clip.decoded % OTHER_PERSON_EVERY == 1 and detect.another_person(view, det):
                         clip.other_person.append(i)
                         continue
-                with stages("masks"):
-                    # MediaPipe's mask, made at the working size, brought to the output size, then snapped
-                    # to the output frame's own colour edges
-                    mask = refine_mask(image, resample(det.mask, *size))
-                    clip.small_masks.append(resample(mask, *small) > 0.5)
-                with stages("write"):
-                    writer.put(len(clip.index), image, to_uint8(mask, f"mask of frame {i}"))
+                with stages("write"):  # MediaPipe's own mask, at the working size: refined after the pass
+                    writer.put(len(clip.index), image, to_uint8(det.mask, f"mask of frame {i}"))
                 keypoints = det.keypoints * np.array([size[0] / work[0], size[1] / work[1]], np.float32)
                 if find_hands is not None:
                     with stages("landmarks"):  # on the frame written: MediaPipe's working size blurs the fingers
@@ -320,7 +327,34 @@ def _detect(source, cfg: CaptureConfig, kept: list[int] | None, scratch: Path, s
     finally:
         with stages("write"):
             writer.close()
+    if clip.index:
+        with stages("masks"):
+            _refine_masks(clip, scratch, size, target_size(*size, min(FIT_SIDE, max(size))))
     return clip, size
+
+
+def _refine_masks(clip: _Clip, folder: Path, size: tuple[int, int], small: tuple[int, int]) -> None:
+    """Every frame's mask (MediaPipe's, as written at its working size) brought to the frame's size and
+    snapped to its edges against the clip's background plate (:mod:`rmavatar.capture.matte`; the camera is
+    static), written over it; ``clip.small_masks`` gets each at ``small`` for the fit."""
+    from rmavatar.capture.matte import PLATE_FRAMES, background_plate, refine_mask
+    from rmavatar.data.io import resample, to_uint8
+
+    def frame(n: int) -> tuple[np.ndarray, np.ndarray]:
+        image = read_frame_png(folder / "images" / f"{n:05d}.png")
+        return image, resample(read_frame_png(folder / "masks" / f"{n:05d}.png") / np.float32(255.0), *size)
+
+    n = len(clip.index)
+    picks = np.unique(np.linspace(0, n - 1, min(PLATE_FRAMES, n)).round().astype(int))
+    images, masks = zip(*(frame(int(k)) for k in picks))
+    plate, seen = background_plate(np.stack(images), np.stack(masks))
+    del images, masks
+    write_frame_png(folder / "background.png", plate)
+    for k in range(n):
+        image, mask = frame(k)
+        mask = refine_mask(image, mask, plate, seen)
+        clip.small_masks.append(resample(mask, *small) > 0.5)
+        write_frame_png(folder / "masks" / f"{k:05d}.png", to_uint8(mask, f"mask of frame {clip.index[k]}"))
 
 
 class _FrameWriter:
@@ -355,6 +389,16 @@ class _FrameWriter:
             self.pool.shutdown(wait=True, cancel_futures=True)
 
 
+def read_frame_png(path: Path) -> np.ndarray:
+    """A PNG that :func:`write_frame_png` wrote: uint8 [H,W,3] RGB or [H,W] grey."""
+    import cv2
+
+    array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise UserError(f"cannot read {path} back")
+    return array[..., ::-1].copy() if array.ndim == 3 else array
+
+
 def write_frame_png(path: Path, array: np.ndarray) -> None:
     """uint8 [H,W,3] RGB or [H,W] grey as an 8-bit PNG, by OpenCV with zlib level 1 and the 'up' row
     filter: about as small as Pillow's level 3 on video frames, in about a third of its time (Pillow's
@@ -373,18 +417,20 @@ def write_frame_png(path: Path, array: np.ndarray) -> None:
         raise UserError(f"cannot write {path}: {exc}") from None
 
 
-def _write_dataset(tmp: Path, frames: Path, meta, camera, params: dict) -> None:
+def _write_dataset(tmp: Path, frames: Path, meta, camera, params: dict, size: tuple[int, int]) -> None:
     """The native dataset in ``tmp`` (see :mod:`rmavatar.data.native`) around the frames already written
-    in ``frames`` (moved in, not encoded again): cameras.npz, smpl.npz and meta.yaml as ``write_native``
-    writes them, then opened by the format's own reader, which checks every key and frame file."""
+    in ``frames`` (moved in, not encoded again): cameras.npz (``camera``: a Camera, or {"K", "viewmat"}
+    per frame), smpl.npz and meta.yaml as ``write_native`` writes them, then opened by the format's own
+    reader, which checks every key and frame file."""
     import os
 
     from rmavatar.data import native
 
-    for sub in ("images", "masks"):
-        os.replace(frames / sub, tmp / sub)
-    native.write_tables(tmp, meta, camera.K, camera.viewmat, params, (camera.width, camera.height), meta.splits,
-                        "capture")
+    for sub in ("images", "masks", "background.png"):
+        if (frames / sub).exists():
+            os.replace(frames / sub, tmp / sub)
+    K, viewmat = (camera["K"], camera["viewmat"]) if isinstance(camera, dict) else (camera.K, camera.viewmat)
+    native.write_tables(tmp, meta, K, viewmat, params, size, meta.splits, "capture")
     native.open_native(tmp)
 
 
@@ -403,15 +449,19 @@ def _check_clip(clip: _Clip, source) -> None:
                         f"the whole body of one person must be in view in most frames")
 
 
-def _splits(n: int, test_fraction: float, name, which: str) -> dict[str, list[int]]:
-    """The train / test split of ``n`` frames (the test split: the clip's last ``test_fraction``); a
-    UserError when either would be empty."""
+def _splits(n: int, test_fraction: float, name, which: str, val_every: int = 0) -> dict[str, list[int]]:
+    """The train / (val /) test split of ``n`` frames (the test split: the clip's last ``test_fraction``;
+    val: every ``val_every``-th frame before it, the first at half that, 0: none); a UserError when
+    train or test would be empty."""
     n_test = max(1, int(round(test_fraction * n)))
-    if n - n_test < 1:
+    body = list(range(n - n_test))
+    val = body[val_every // 2::val_every] if val_every else []
+    if len(body) - len(val) < 1:
         raise UserError(f"input {name}: {n} frames {which} leave no training frame with --test-fraction "
                         f"{test_fraction:g} ({n_test} test frames); give a smaller --test-fraction or a longer "
                         "clip (at least 2 frames are needed)")
-    return {"train": list(range(n - n_test)), "test": list(range(n - n_test, n))}
+    splits = {"train": [i for i in body if i not in set(val)], "test": list(range(n - n_test, n))}
+    return {**splits, "val": val} if val else splits
 
 
 def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
@@ -433,10 +483,11 @@ def _observations(clip: _Clip, K: np.ndarray, size: tuple[int, int], device):
 
 
 def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: str, fx: float, losses: dict,
-                  hands=None, shape=None):
+                  hands=None, shape=None, views=None):
     """The captured dataset's meta.yaml (a NativeMeta): body ``spec``, ``splits``, where each frame came
     from, how many frames saw each hand (``hands``: the hand fit, None when the fingers were not captured),
-    the shape fit's summary (``shape``: a ShapeFitResult, None when the shape was not fitted)."""
+    the shape fit's summary (``shape``: a ShapeFitResult, None when the shape was not fitted), the other
+    cameras' frames (``views``: a ViewFrames, None without them)."""
     from rmavatar.data import NativeMeta
 
     preset = spec.partition(":")[2] if spec.startswith("anny:") else None
@@ -444,6 +495,7 @@ def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: s
     return NativeMeta(
         name=source.path.stem, splits=splits, fps=source.fps if cfg.fps is None else min(cfg.fps, source.fps),
         gender=gender, body=spec, poses_estimated=True,
+        same_instant={} if views is None else {"novel_view": views.same_instant},
         extra={"generator": "rmavatar capture", "source": str(source.path.resolve()),
                "source_fps": source.fps, "frames_decoded": clip.decoded,
                # dataset frame i (images/{i:05d}.png) is the source's frame source_frames[i]: the video's
@@ -452,7 +504,9 @@ def _dataset_meta(source, clip: _Clip, cfg: CaptureConfig, splits: dict, spec: s
                "frames_without_person": clip.no_person, "frames_with_another_person": clip.other_person,
                "frames_looked_at_first": clip.look.looked,
                "detection_size": list(clip.work_size),
-               "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": fx},
+               "camera": {"fov": cfg.fov, "focal": cfg.focal, "fx": fx, "calibration": cfg.calibration,
+                          "name": cfg.camera},
+               "novel_views": None if views is None else {"videos": cfg.novel_views, "cameras": views.summary()},
                "fit": asdict(cfg.fit), "losses": losses, "hands": _hands_found(hands, clip),
                "hand_fit": None if hands is None else asdict(cfg.hands),
                "shape": None if shape is None else shape.summary(),
@@ -544,6 +598,73 @@ def _fit_clip(body, clip: _Clip, K: np.ndarray, size: tuple[int, int], fps: floa
     return _Fitted(body, params, result.losses, hands, shape)
 
 
+@dataclass
+class _Rig:
+    """A calibrated rig: the input's camera and the other cameras' videos (capture.views.NovelView)."""
+
+    main: object  # a CalibratedCamera
+    views: list
+
+
+def _open_rig(cfg: CaptureConfig, video: Path) -> _Rig | None:
+    """The calibration's cameras for this capture, or None without --calibration."""
+    if cfg.calibration is None:
+        return None
+    from rmavatar.capture.views import parse_views
+    from rmavatar.data.calibration import pick_camera, read_calibration
+
+    cameras = read_calibration(cfg.calibration)
+    main = pick_camera(cameras, cfg.camera, video, cfg.calibration)
+    views = parse_views(cfg.novel_views, cameras, Path(cfg.calibration))
+    same = [v.video for v in views if v.camera.name == main.name]
+    if same:
+        raise UserError(f"--novel-view {same[0]} is camera {main.name}, the input's own: a novel view needs another camera")
+    return _Rig(main, views)
+
+
+def _capture_views(rig: _Rig, body, params: dict, train: list[int], clip: _Clip, K: np.ndarray, size,
+                   fps: float, scratch: Path):
+    """The rig's other cameras at the training frames' instants, written into ``scratch`` after the clip's
+    frames (:func:`rmavatar.capture.views.capture_views`)."""
+    import torch
+
+    from rmavatar.body import PoseSequence, posed_vertices
+    from rmavatar.capture.views import MainView, capture_views
+
+    poses = PoseSequence.from_params(params).select(torch.as_tensor(train))
+    betas = np.asarray(params["betas"]).reshape(-1)[:min(10, int(getattr(body, "num_betas", 0)))]
+    with torch.no_grad():
+        vertices = posed_vertices(body, poses, torch.as_tensor(betas)[None] if len(betas) else None).cpu().numpy()
+    main = MainView(K=K, size=size, source_frames=list(clip.index), keypoints=np.stack(clip.keypoints),
+                    visibility=np.stack(clip.visibility), positions=train, vertices=vertices,
+                    faces=body.faces.cpu().numpy())
+
+    def write(n: int, image: np.ndarray, mask: np.ndarray) -> None:
+        write_frame_png(scratch / "images" / f"{n:05d}.png", image)
+        write_frame_png(scratch / "masks" / f"{n:05d}.png", mask)
+
+    return capture_views(rig.views, rig.main, main, fps, len(clip.index), write)
+
+
+PER_FRAME = ("global_orient", "body_pose", "transl", "hand_pose", "hand_found")
+
+
+def _with_views(params: dict, views, K: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The dataset's params, K [N+M,3,3] and viewmat [N+M,4,4] with the views' M frames after the clip's
+    N: each view frame takes the parameters of its instant's frame."""
+    rows = np.asarray(views.same_instant)
+    out = {k: (np.concatenate([v, np.asarray(v)[rows]]) if k in PER_FRAME else v) for k, v in params.items()}
+    n = len(params["global_orient"])
+    Ks = np.concatenate([np.broadcast_to(K, (n, 3, 3)), np.stack(views.K)]).astype(np.float32)
+    viewmats = np.concatenate([np.broadcast_to(np.eye(4), (n, 4, 4)), np.stack(views.viewmat)]).astype(np.float32)
+    return out, Ks, viewmats
+
+
+def _first(params: dict, n: int) -> dict:
+    """``params`` of the clip's first ``n`` frames (without the other cameras' frames)."""
+    return {k: (np.asarray(v)[:n] if k in PER_FRAME else v) for k, v in params.items()}
+
+
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
@@ -568,10 +689,11 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     out = Path(out)
     source = open_source(input_path)
     check_out(out, source.path, overwrite)
+    rig = _open_rig(cfg, source.path)  # before any decoding: a wrong camera name fails now
     kept = kept_frames(source, cfg.fps)
     if kept is not None:  # the clip's length is known: a split no frame count up to it can fill is refused now
         kept = kept[:cfg.frames]
-        _splits(len(kept), cfg.test_fraction, source.path, "in all")
+        _splits(len(kept), cfg.test_fraction, source.path, "in all", cfg.val_every)
     device = resolve_device(cfg.device)
     body = load_body_model(cfg.body).to(device)
     parent = out.parent if str(out.parent) else Path(".")
@@ -587,21 +709,31 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
             clip, size = _detect(source, cfg, kept, scratch, stages, bar, hands=fingers)
         _check_clip(clip, source)
         n = len(clip.index)
-        splits = _splits(n, cfg.test_fraction, source.path, "with a person")  # before the fit's minutes
-        K = intrinsics(*size, fov=cfg.fov, focal=cfg.focal)
+        # before the fit's minutes
+        splits = _splits(n, cfg.test_fraction, source.path, "with a person", cfg.val_every)
+        K = rig.main.scaled_K(*size) if rig else intrinsics(*size, fov=cfg.fov, focal=cfg.focal)
         fitted = _fit_clip(body, clip, K, size, source.fps, cfg, stages, device, fingers, progress)
         body, params = fitted.body, fitted.params
+        camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
+        views = None
+        if rig and rig.views:
+            with stages("views"):
+                views = _capture_views(rig, body, params, splits["train"], clip, K, size, source.fps, scratch)
+            params, K_all, viewmats = _with_views(params, views, K)
+            splits["novel_view"] = list(range(n, n + len(views.K)))
+            camera = {"K": K_all, "viewmat": viewmats}
         spec = getattr(body, "spec", cfg.body)
         meta = _dataset_meta(source, clip, cfg, splits, spec, float(K[0, 0]), fitted.losses, fitted.hands,
-                             fitted.shape)
-        camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
+                             fitted.shape, views)
         with stages("write"), \
                 output_folder(out, DATASET_KIND, option="--out", overwrite=overwrite, writes=DATASET_NAMES) as tmp:
-            _write_dataset(tmp, scratch, meta, camera, params)
+            _write_dataset(tmp, scratch, meta, camera, params, size)
             np.savez(tmp / "capture.npz", source_index=np.asarray(clip.index),
                      keypoints=np.stack(clip.keypoints), visibility=np.stack(clip.visibility),
                      world=np.stack(clip.world), **_hand_landmarks(clip))  # fmt: skip
-            contact_sheet(tmp / "contact_sheet.png", body, camera, params, splits, clip, tmp / "images")
+            main_camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
+            contact_sheet(tmp / "contact_sheet.png", body, main_camera, _first(params, n),
+                          {k: v for k, v in splits.items() if k != "novel_view"}, clip, tmp / "images")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     total = time.perf_counter() - start
@@ -611,7 +743,8 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         "detection_size": list(clip.work_size), "body": spec,
         "camera": {"fx": float(K[0, 0]), "width": size[0], "height": size[1]},
         "losses": fitted.losses, "hands": _hands_found(fitted.hands, clip),
-        "shape": None if fitted.shape is None else fitted.shape.summary(), "seconds": dict(stages.wall),
+        "shape": None if fitted.shape is None else fitted.shape.summary(),
+        "novel_views": None if views is None else views.summary(), "seconds": dict(stages.wall),
         "cpu_seconds": dict(stages.cpu),
         "total_seconds": total, "seconds_per_frame": total / max(clip.decoded, 1),
     }

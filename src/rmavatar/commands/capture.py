@@ -22,6 +22,7 @@ examples:
   rmavatar capture me.mp4 --out data/me --still              # a turn in a held A-pose
   rmavatar capture frames/ --out data/me --focal 1400 --size 1080
   rmavatar capture me.mp4 --out data/me --body smpl:models/smpl/SMPL_NEUTRAL.pkl
+  rmavatar capture videos/cam04.mp4 --out data/lab --calibration Calib.toml --novel-view videos/cam03.mp4
 then:
   rmavatar inspect data/me --overlay check.png
   rmavatar train data/me --out runs/me
@@ -40,6 +41,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's horizontal field of view (across the frame's width)")
     camera.add_argument("--focal", type=float, metavar="PIXELS",
                         help="the focal length in pixels of the frames written (after --size)")
+    camera.add_argument("--calibration", metavar="FILE",
+                        help="a calibration of the camera (and of others filming the same clip): a TOML file as "
+                             "Pose2Sim and Anipose write it (OpenCV's model) or a Qualisys .qca.txt; its "
+                             "intrinsics replace --fov / --focal (lens distortion is not applied)")
+    parser.add_argument("--camera", metavar="NAME",
+                        help="with --calibration: the input's camera in it (default: the camera named like the "
+                             "video, e.g. cam04 for cam04.mp4)")
+    parser.add_argument("--novel-view", action="append", default=[], metavar="VIDEO[@CAMERA]",
+                        help="with --calibration: a synchronised video of the same clip by another calibrated "
+                             "camera (named like the video, or @CAMERA); its frames at the training instants "
+                             "become the split novel_view, real ground truth for views the avatar never saw "
+                             "(rmavatar eval --split novel_view). Repeatable")
     parser.add_argument("--body", default="anny", metavar="SPEC",
                         help="body to fit: anny (default: the neutral preset), anny:PRESET (neutral, male, "
                              "female, child) or smpl:PATH (SMPL betas are fitted too)")
@@ -49,6 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="longer side of the frames written, in pixels (default: the video's)")
     parser.add_argument("--test-fraction", type=float, default=0.2, metavar="F",
                         help="the end of the clip held out as the test split (default 0.2)")
+    parser.add_argument("--val-every", type=int, default=0, metavar="K",
+                        help="of the frames before the test tail, hold out every K-th as the split val "
+                             "(frames between training frames; default 0: none)")
     parser.add_argument("--still", action="store_true",
                         help="the person holds one pose and turns on the spot (the recommended turn in an "
                              "A-pose): every frame's pose and up direction are pulled towards the clip's mean, "
@@ -81,13 +97,19 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--iters must be >= 1, got {args.iters}")
         fit.iters = args.iters
     cfg = CaptureConfig(body=args.body, fov=args.fov, focal=args.focal, fps=args.fps, size=args.size,
-                        test_fraction=args.test_fraction, device=args.device, fit=fit)
+                        test_fraction=args.test_fraction, device=args.device, fit=fit, val_every=args.val_every,
+                        calibration=args.calibration, camera=args.camera, novel_views=args.novel_view)
     if args.no_shape:
         cfg.shape = None
     s = capture(args.input, args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     dropped = len(s["no_person"]) + len(s["other_person"])
-    print(f"wrote {s['out']}: {s['frames']['train']} train + {s['frames']['test']} test frames of "
+    held = "".join(f" + {s['frames'][k]} {k}" for k in ("val", "novel_view") if k in s["frames"])
+    print(f"wrote {s['out']}: {s['frames']['train']} train + {s['frames']['test']} test{held} frames of "
           f"{s['camera']['width']}x{s['camera']['height']} (fx {s['camera']['fx']:.1f} px), body {s['body']}")
+    for name, view in (s.get("novel_views") or {}).items():
+        print(f"novel view {name}: {view['frames']} frames, {view['offset']:+d} video frames from the main one's "
+              f"instants (synchronised by the landmarks); the fitted body covers its masks with IoU "
+              f"{view['body_iou']:.3f}")
     if dropped:
         print(f"dropped {dropped} of {s['decoded']} frames: {len(s['no_person'])} without a person "
               f"{s['no_person'][:10]}, {len(s['other_person'])} with another person {s['other_person'][:10]}")
@@ -100,9 +122,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"shape: the body's surface moved by {shape['mean_mm']:.0f} mm on average (from {shape['min_mm']:.0f} "
               f"to {shape['max_mm']:.0f} mm) to fit the outline in {shape['frames']} frames (smpl.npz's body_offsets)")
     t = s["seconds"]
+    views = f"other cameras {t['views']:.1f} s, " if t["views"] else ""
     w, h = s["detection_size"]
     print(f"{s['seconds_per_frame']:.2f} s per frame, {s['total_seconds']:.1f} s in all (decoding {t['decode']:.1f} s, "
           f"landmarks {t['landmarks']:.1f} s at {w}x{h}, masks {t['masks']:.1f} s, fitting {t['fit']:.1f} s, "
-          f"shape {t['shape']:.1f} s, writing {t['write']:.1f} s)")
+          f"shape {t['shape']:.1f} s, {views}writing {t['write']:.1f} s)")
     print(f"look at {s['out']}/contact_sheet.png, then: rmavatar train {s['out']} --out runs/NAME")
     return 0
