@@ -8,7 +8,7 @@ import trimesh
 
 from rmavatar.avatar import Avatar, AvatarConfig, AvatarExtras
 from rmavatar.train.config import LossConfig
-from rmavatar.train.losses import offset_loss, position_loss, scaling_loss, total_loss
+from rmavatar.train.losses import mask_loss, offset_loss, position_loss, scaling_loss, spiky_loss, total_loss
 
 from devices import DEVICES
 
@@ -31,6 +31,30 @@ def test_offset_loss_by_hand():
     d_s = torch.tensor([[3.0, 0, 0]]).expand(5, 3)
     d_r = torch.full((5, 4), 0.5)
     assert math.isclose(float(offset_loss(d_mu, d_s, d_r)), 4.0 + 3.0 + 0.25, rel_tol=1e-6)
+
+
+def test_spiky_loss_by_hand():
+    s = torch.tensor([[1.0, 1.0, 1.0], [20.0, 1.0, 0.5], [0.1, 0.5, 2.0]])
+    # longest / shortest: 1, 40, 20 -> log excess over log 10: 0, log 4, log 2
+    assert math.isclose(float(spiky_loss(torch.log(s))), (math.log(4) + math.log(2)) / 3, rel_tol=1e-5)
+    assert math.isclose(float(spiky_loss(torch.log(s), eps=50.0)), 0.0, abs_tol=1e-7)
+    weights = torch.tensor([0.0, 0.5, 0.5])  # capacity rows: the mean over the live rows
+    assert math.isclose(float(spiky_loss(torch.log(s), row_weights=weights)), (math.log(4) + math.log(2)) / 2,
+                        rel_tol=1e-5)
+
+
+def test_mask_loss_by_hand_and_in_the_total():
+    alpha = torch.tensor([[1.0, 0.5], [0.0, 0.25]]).reshape(2, 2, 1).requires_grad_(True)
+    mask = torch.tensor([[1.0, 1.0], [0.0, 1.0]]).reshape(2, 2, 1)
+    assert math.isclose(float(mask_loss(alpha, mask)), (0.5 + 0.75) / 4, rel_tol=1e-6)
+    render = target = torch.full((2, 2, 3), 0.5)
+    cfg = LossConfig(rgb=1.0, ssim=0.0, lpips=0.0, pos=0.0, scaling=0.0, offset=0.0, mask=2.0)
+    loss, terms = total_loss(render, target, None, cfg, alpha=alpha, mask=mask)
+    assert set(terms) == {"l1", "mask"} and math.isclose(float(loss.detach()), 2 * 1.25 / 4, rel_tol=1e-6)
+    loss.backward()  # pulls alpha up where the mask is 1, down where it is 0
+    assert alpha.grad.reshape(-1).tolist() == [0.0, -0.5, 0.0, -0.5]
+    with pytest.raises(ValueError, match="loss.mask needs the render's alpha"):
+        total_loss(render, target, None, cfg)
 
 
 def _fake_extras(n=4):

@@ -90,11 +90,14 @@ def _stages(trainer, repeats: int, sync) -> dict:
             image.backward(grad_img)
     out["rasterizer_backward"] = clock.result()
     img_leaf = image.detach().clone().requires_grad_(True)
+    alpha_leaf = alpha.detach().clone().requires_grad_(True)
+    mask = trainer.frames.mask(i) if cfg.loss.mask else None
     offsets = None if extras.offsets is None else tuple(o.detach().clone().requires_grad_(True) for o in extras.offsets)
     extras_leaf = type(extras)(local_means=av.means, local_log_scales=av.log_scales, offsets=offsets)
 
     def losses():
-        loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units, lpips_window=window)
+        loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units, lpips_window=window,
+                             alpha=alpha_leaf, mask=mask)
         loss.backward()
 
     out["losses"] = median_time(losses, repeats, sync)
@@ -169,13 +172,15 @@ def count_graphed_ops(trainer) -> dict:
         outs = (gs.means, gs.quats, gs.scales, gs.opacities, colors, *(extras.offsets or ()))
         torch.autograd.grad(outs, params, [torch.ones_like(o) for o in outs], allow_unused=True)
     with torch.no_grad():
-        image, _, _ = rasterize(*(t.detach() for t in outs[:5]), cam.viewmat, cam.K, cam.width, cam.height,
-                                background=bg, check=False)
+        image, alpha, _ = rasterize(*(t.detach() for t in outs[:5]), cam.viewmat, cam.K, cam.width, cam.height,
+                                    background=bg, check=False)
     image.requires_grad_(True)
+    alpha.requires_grad_(True)
+    mask = trainer.frames.mask(i) if cfg.loss.mask else None
     offsets = None if extras.offsets is None else tuple(o.detach().requires_grad_(True) for o in extras.offsets)
     with OpCounter() as losses:
         loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets, extras.row_weights), cfg.loss,
-                             lpips_units=units, lpips_window=window)
+                             lpips_units=units, lpips_window=window, alpha=alpha, mask=mask)
         loss.backward()
     av.zero_grad(set_to_none=True)
     return {"posing": posing.ops, "losses": losses.ops}

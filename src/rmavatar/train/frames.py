@@ -162,8 +162,9 @@ class FrameCache:
     """The n training frames of ``split`` on ``device``: ``cameras`` (CameraTensors), the held bodies
     (``vertices`` [n,V,3], ``body_pose`` [n,69]: what every step without per-step pose corrections uses),
     the LPIPS windows (``window_rows`` [n,h], ``window_cols`` [n,w]; None: LPIPS on the whole frame) and,
-    within a byte budget (:meth:`fill`), ``face_tables`` [n,Fb,38], ``targets`` [n,H,W,3] and the
-    targets' LPIPS features (None where they did not fit: computed at each step instead)."""
+    within a byte budget (:meth:`fill`), ``masks`` [n,H,W,1] (for a mask loss), ``face_tables``
+    [n,Fb,38], ``targets`` [n,H,W,3] and the targets' LPIPS features (None where they did not fit:
+    computed at each step instead)."""
 
     def __init__(self, dataset, split: str, body, device: torch.device):
         self.dataset, self.split, self.body, self.device = dataset, split, body, device
@@ -173,7 +174,7 @@ class FrameCache:
         self.width, self.height = cams[0].width, cams[0].height
         self.cameras = [CameraTensors(v, k, self.width, self.height) for v, k in zip(viewmats, Ks)]
         self.avatar = self.face_tables = self.targets = self.target_units = self._cached_bg = None
-        self.window_rows = self.window_cols = None
+        self.window_rows = self.window_cols = self.masks = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -189,15 +190,19 @@ class FrameCache:
             self.face_tables = self._face_tables()
 
     def fill(self, avatar, background: str, lpips: bool, generator: torch.Generator, budget: int,
-             lpips_region: str = "frame") -> None:
+             lpips_region: str = "frame", masks: bool = False) -> None:
         """With ``lpips`` and ``lpips_region`` "person" (the run's ``loss.lpips_region``), the frames' LPIPS
-        windows (:meth:`lpips_window`); then cache within ``budget`` bytes, in this order: the face tables
-        of ``avatar``; with a fixed ``background`` the composited targets; with ``lpips`` their LPIPS
-        features (of their windows)."""
+        windows (:meth:`lpips_window`); then cache within ``budget`` bytes, in this order: with ``masks``
+        (a mask loss) the frames' masks; the face tables of ``avatar``; with a fixed ``background`` the
+        composited targets; with ``lpips`` their LPIPS features (of their windows)."""
         n = len(self)
         self.avatar = avatar
         if lpips and lpips_region == "person":
             self._make_windows()
+        need = n * self.height * self.width * 4
+        if masks and need <= budget:
+            self.masks = torch.stack([self.mask(i) for i in range(n)])
+            budget -= need
         need = n * avatar.binding_faces.shape[0] * FACE_TABLE * self.vertices.element_size()
         if need <= budget:
             self.face_tables = self._face_tables()
@@ -251,6 +256,13 @@ class FrameCache:
         image = torch.from_numpy(np.array(frame.image, dtype=np.float32)).to(self.device)
         mask = torch.from_numpy(np.array(frame.mask, dtype=np.float32)).to(self.device)
         return composite(image, mask, bg)
+
+    def mask(self, i: int) -> torch.Tensor:
+        """Frame ``i``'s person mask [H,W,1] on the device (float32, 0..1)."""
+        if self.masks is not None:
+            return self.masks[i]
+        mask = np.array(self.dataset.frame(self.split, i).mask, dtype=np.float32)
+        return torch.from_numpy(mask).to(self.device).unsqueeze(-1)
 
     def lpips_units(self, i: int, bg: torch.Tensor) -> list[torch.Tensor] | None:
         """The cached LPIPS features of ``target(i, bg)`` cropped to ``lpips_window(i)`` (for

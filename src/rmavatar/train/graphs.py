@@ -70,23 +70,25 @@ class _Posing(nn.Module):
 
 class _Losses:
     """:func:`total_loss` as a function of tensors only: (image, target, local_means, local_log_scales,
-    *row weights, *offsets, *lpips units, *lpips window) -> (loss, the terms stacked [T]); ``names`` are
-    the terms'."""
+    *row weights, *offsets, *lpips units, *lpips window, *(alpha, mask)) -> (loss, the terms stacked [T]);
+    ``names`` are the terms'."""
 
-    def __init__(self, cfg: LossConfig, layout: tuple[int, int, int, int]):
-        # how many row-weight, offset, LPIPS unit and window tensors are given
+    def __init__(self, cfg: LossConfig, layout: tuple[int, int, int, int, int]):
+        # how many row-weight, offset, LPIPS unit, window and (alpha, mask) tensors are given
         self.cfg, self.layout = cfg, layout
         self.names: list[str] = []
 
     def __call__(self, image, target, means, log_scales, *rest):
-        n_rows, n_off, n_units, n_window = self.layout
-        row_weights, rest = rest[:n_rows], rest[n_rows:]
-        offsets, rest = rest[:n_off], rest[n_off:]
-        units, window = rest[:n_units], rest[n_units:n_units + n_window]
+        groups, start = [], 0
+        for count in self.layout:
+            groups.append(rest[start:start + count])
+            start += count
+        row_weights, offsets, units, window, coverage = groups
         extras = AvatarExtras(local_means=means, local_log_scales=log_scales, offsets=tuple(offsets) or None,
                               row_weights=row_weights[0] if row_weights else None)
+        alpha, mask = coverage if coverage else (None, None)
         loss, parts = total_loss(image, target, extras, self.cfg, lpips_units=list(units) or None,
-                                 lpips_window=tuple(window) or None)
+                                 lpips_window=tuple(window) or None, alpha=alpha, mask=mask)
         self.names = list(parts)
         return loss, torch.stack(list(parts.values())) if parts else loss.new_zeros(0)
 
@@ -140,13 +142,17 @@ class StepGraphs:
 
     def losses(self, image: torch.Tensor, target: torch.Tensor, posed: PosedTensors,
                lpips_units: list[torch.Tensor] | None = None,
-               lpips_window: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict]:
+               lpips_window: tuple[torch.Tensor, torch.Tensor] | None = None,
+               coverage: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict]:
         """``total_loss`` of the rendered ``image`` [H,W,3] against ``target``, with the avatar's local
-        means and log-scales and the posed frame's offsets: (loss, each term by name)."""
+        means and log-scales and the posed frame's offsets (and ``coverage``: the render's alpha [H,W,1]
+        and the frame's mask [H,W,1], for the mask term): (loss, each term by name)."""
         units, window, offsets = tuple(lpips_units or ()), tuple(lpips_window or ()), posed.offsets or ()
+        coverage = tuple(coverage or ())
         rows = () if self.avatar.row_weights is None else (self.avatar.row_weights,)  # capacity buffers
-        inputs = (image, target, self.avatar.means, self.avatar.log_scales, *rows, *offsets, *units, *window)
-        layout = (len(rows), len(offsets), len(units), len(window))
+        inputs = (image, target, self.avatar.means, self.avatar.log_scales, *rows, *offsets, *units, *window,
+                  *coverage)
+        layout = (len(rows), len(offsets), len(units), len(window), len(coverage))
         fn, terms = self._callable("_losses", lambda: ("loss", layout, _describe(inputs)), layout,
                                    lambda: _Losses(self.loss, layout), inputs)
         loss, values = fn(*inputs)

@@ -1,9 +1,12 @@
 """RMAvatar's training loss (paper Eq. 13-17; docs/model.md).
 
-L = rgb L1 + ssim (1 - SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset, with
+L = rgb L1 + ssim (1 - SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset
+    + mask L_mask + spiky L_spiky, with
   L_pos     = mean_i max(|mu_i| - eps_pos, 0)                (face-local position, eps_pos = 1)
   L_scaling = mean_i || max(exp(log_s_i) - eps_scaling, 0) ||  (face-local scale, eps_scaling = 0.6)
   L_offset  = mean(d_mu^2) + mean(d_r^2) + mean(d_s^2)         (the rectifier's outputs)
+  L_mask    = mean over pixels |alpha - mask|                  (the render's opacity against the person mask)
+  L_spiky   = mean_i max(log(max_k s_ik / min_k s_ik) - log(eps_spiky), 0)  (needle-like Gaussians)
 The paper writes each regulariser as an L2 norm; per Gaussian we take that norm and average over the
 Gaussians so the terms do not grow with the Gaussian count. The offset term is the mean of squares, as
 the public release computes it (one mean per offset kind, summed).
@@ -12,6 +15,12 @@ LPIPS may be taken on a window around the person (``LossConfig.lpips_region: per
 outside the mask the target is the plain background, which the L1 term already covers. A window is two
 index tensors (rows [h], cols [w]) of one size for the whole run, so a step's shapes never depend on the
 frame.
+
+L_mask is not in the paper. With one fixed background a semi-transparent avatar with darkened colours
+renders the same as an opaque one (over white, 0.75 c + 0.25 looks like a darker c), and real masks'
+soft edges invite it: the avatar becomes a ghost from other sides and over other backgrounds. Several
+peers (GART, 3DGS-Avatar) add this term. L_spiky (PhysGaussian's anisotropy regulariser, in log
+space) keeps Gaussians from growing into needles that poke out of the silhouette in new poses.
 """
 
 from __future__ import annotations
@@ -42,6 +51,9 @@ class LossConfig:
     pos: float = 0.01  # weight of L_pos, which keeps Gaussians near their triangle
     scaling: float = 1.0  # weight of L_scaling, which keeps face-local scales small (0: the paper's ablation)
     offset: float = 1.0  # weight of L_offset, which keeps the rectifier's offsets small (0: the paper's ablation)
+    mask: float = 0.0  # weight of L_mask: mean |alpha - mask| between the render's opacity and the person mask
+    spiky: float = 0.0  # weight of L_spiky, which keeps each Gaussian's longest axis within eps_spiky x its shortest
+    eps_spiky: float = 10.0  # L_spiky's largest ratio of a Gaussian's longest to its shortest axis
     eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
     lpips_region: str = "frame"  # LPIPS on: "frame" (the whole image), "person" (a window around the mask: faster)
@@ -51,6 +63,9 @@ class LossConfig:
             raise UserError(f"loss.lpips_region must be one of {', '.join(LPIPS_REGIONS)}, not {self.lpips_region!r}")
         weights = tuple(f.name for f in dataclasses.fields(self) if f.name != "lpips_region")
         check_fields(self, "loss", nonnegative=weights)
+        if self.eps_spiky < 1:
+            raise UserError(f"loss.eps_spiky is a ratio of a Gaussian's longest to its shortest axis, at least 1; "
+                            f"got {self.eps_spiky:g}")
         return self
 
 
@@ -71,6 +86,18 @@ def position_loss(local_means: torch.Tensor, eps: float = 1.0, row_weights: torc
 def scaling_loss(local_log_scales: torch.Tensor, eps: float = 0.6, row_weights: torch.Tensor | None = None) -> torch.Tensor:
     """mean over Gaussians of || max(exp(log_s) - eps, 0) ||; local_log_scales [N,3]."""
     return _row_mean(torch.linalg.vector_norm(torch.relu(torch.exp(local_log_scales) - eps), dim=-1), row_weights)
+
+
+def spiky_loss(local_log_scales: torch.Tensor, eps: float = 10.0, row_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """mean over Gaussians of max(log(max_k s_k / min_k s_k) - log(eps), 0); local_log_scales [N,3]."""
+    extent = local_log_scales.amax(-1) - local_log_scales.amin(-1)
+    return _row_mean(torch.relu(extent - float(torch.log(torch.tensor(eps, dtype=torch.float64)))), row_weights)
+
+
+def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """mean |alpha - mask| over pixels: the render's accumulated opacity [H,W,1] against the frame's
+    person mask [H,W,1] (or [H,W]) in 0..1."""
+    return (alpha.reshape(mask.shape) - mask).abs().mean()
 
 
 def offset_loss(d_mu: torch.Tensor, d_s: torch.Tensor, d_r: torch.Tensor,
@@ -257,6 +284,8 @@ def total_loss(
     ssim_fn: ImageFn | None = None,
     lpips_units: list[torch.Tensor] | None = None,
     lpips_window: Window | None = None,
+    alpha: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of all terms, and each unweighted term (detached) by name.
 
@@ -270,12 +299,16 @@ def total_loss(
     sees render and target cropped to them (:func:`crop`; training: ``FrameCache.lpips_window``, the
     person's window), as a share of the whole frame's LPIPS (``_lpips_term``), and ``lpips_units`` must
     be of that crop; None: the whole images.
+    alpha [H,W,1], mask [H,W,1]: the render's opacity and the frame's person mask, for L_mask (its weight
+    needs both).
     Terms with weight 0 are not computed.
     """
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
     weights = weights or LossConfig()
-    w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset")}
+    w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset", "mask", "spiky")}
+    if w["mask"] and (alpha is None or mask is None):
+        raise ValueError("loss.mask needs the render's alpha and the frame's mask")
 
     # The loss is one product of the weights with all terms' values side by side, plus a constant (the
     # SSIM term enters as w (1 - SSIM) = w - w SSIM): one kernel launch on a GPU, where a multiply and an
@@ -287,6 +320,8 @@ def total_loss(
         values.append(("ssim", (ssim_fn or _default_ssim)(render, target).view(1)))
     if w["lpips"]:
         values.append(("lpips", _lpips_term(render, target, lpips_fn, lpips_units, lpips_window).view(1)))
+    if w["mask"]:
+        values.append(("mask", mask_loss(alpha, mask).view(1)))
     means, log_scales, offsets, rw = (None, None, None, None) if extras is None else (
         extras.local_means, extras.local_log_scales, extras.offsets, extras.row_weights)
     if w["pos"] and w["scaling"] and w["offset"] and None not in (means, log_scales, offsets):
@@ -300,9 +335,12 @@ def total_loss(
             values.append(("scaling", scaling_loss(log_scales, weights.eps_scaling, rw).view(1)))
         if w["offset"] and offsets is not None:
             values.append(("offset", offset_loss(*offsets, row_weights=rw).view(1)))
+    if w["spiky"] and log_scales is not None:
+        values.append(("spiky", spiky_loss(log_scales, weights.eps_spiky, rw).view(1)))
     if not values:
         return render.new_zeros(()), {}
-    key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset"}
+    key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset",
+                  "mask": "mask", "spiky": "spiky"}
     names = [n for name, _ in values for n in (("pos", "scaling", "offset") if name == "regularisers" else (name,))]
     row = tuple(-w["ssim"] if n == "ssim" else w[key_weight[n]] for n in names)
     weight = constant((row,), render.dtype, render.device)  # [1,T]

@@ -119,7 +119,7 @@ class Trainer:
         self.frames.hold(poses, self.avatar.pose_input)
         self.ckpt = None  # free the loaded tensors
         self.frames.fill(self.avatar, cfg.background, bool(cfg.loss.lpips), self.bg_generator, FRAME_CACHE_BYTES,
-                         cfg.loss.lpips_region)
+                         cfg.loss.lpips_region, masks=bool(cfg.loss.mask))
         # A kill during a checkpoint write leaves only its temporary file behind (the old last.pt is intact).
         for stale in self.run_folder.checkpoint.parent.glob(".last.*.tmp.pt"):
             stale.unlink(missing_ok=True)
@@ -156,10 +156,11 @@ class Trainer:
             posed = self.graphs.pose_body(self._pose_corrected, refined, cam.viewmat)
         else:
             posed = self.graphs.pose(*self.frames.held(i), cam.viewmat)  # rasterized eagerly in between
-        image, _, info = rasterize(posed.means, posed.quats, posed.scales, posed.opacities, posed.colors,
-                                   cam.viewmat, cam.K, cam.width, cam.height, background=bg, check=False)
+        image, alpha, info = rasterize(posed.means, posed.quats, posed.scales, posed.opacities, posed.colors,
+                                       cam.viewmat, cam.K, cam.width, cam.height, background=bg, check=False)
+        coverage = (alpha, self.frames.mask(i)) if cfg.loss.mask else None
         loss, parts = self.graphs.losses(image, target, posed, self.frames.lpips_units(i, bg),
-                                         self.frames.lpips_window(i))
+                                         self.frames.lpips_window(i), coverage)
         loss.backward()
         grads = [p.grad for g in self.optimizer.param_groups for p in g["params"] if p.grad is not None]
         grads += [] if self.poses is None else self.poses.gradients()
