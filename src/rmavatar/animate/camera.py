@@ -72,3 +72,29 @@ def preset_viewmat(name: str, center, distance: float) -> torch.Tensor:
     """A named camera [4,4]: 'front' (on +z), 'back' (-z), 'left'/'side' (the body's left, +x), 'right' (-x)."""
     az = {"front": 0.0, "side": 90.0, "left": 90.0, "back": 180.0, "right": -90.0}[name]
     return orbit_viewmats(center, distance, 1, start_deg=az)[0]
+
+
+def frame_camera(means, size: int, azimuth: float = 20.0, elevation: float = 0.0, fov: float = 30.0):
+    """A square ``size`` camera (viewmat [4,4] OpenCV world -> camera, K [3,3]) looking at Gaussians at
+    ``means`` [N,3] in a y-up world.
+
+    It looks at the centre of their robust bounding box (the 1% and 99% quantiles per axis) from
+    ``azimuth`` degrees about the vertical (0: from +z, an avatar's front; positive: towards +x, its
+    left) and ``elevation`` degrees above the horizontal, at the distance where a sphere 10% larger than
+    the one about that centre holding 99% of the Gaussians fills the ``fov`` (vertical field of view,
+    degrees). Outliers (a stray Gaussian, a far background) do not move the camera away; depends on
+    the positions only, so the same Gaussians read from a PLY get the very same camera.
+    """
+    pts = means.detach().to("cpu", torch.float64).reshape(-1, 3)
+    pts = pts[:: max(1, math.ceil(len(pts) / 1_000_000))]  # torch.quantile takes at most 16M values
+    if len(pts) == 0:
+        centre, radius = torch.zeros(3, dtype=torch.float64), 1.0
+    else:
+        q = torch.tensor([0.01, 0.99], dtype=torch.float64)
+        lo, hi = torch.quantile(pts, q, dim=0)
+        centre = 0.5 * (lo + hi)
+        radius = float(torch.quantile((pts - centre).norm(dim=-1), 0.99))
+    radius = max(1.1 * radius, 1e-3)
+    distance = radius / math.sin(math.radians(fov) / 2)
+    viewmat = orbit_viewmats(centre, distance, 1, start_deg=azimuth, elevation_deg=elevation)[0]
+    return viewmat, intrinsics(size, size, fov)

@@ -6,7 +6,7 @@ run: a still of the avatar, or with ``--turntable`` a 360-degree video). Add a s
 option and a loader below.
 
 ``--ply`` and ``RUN`` draw the same picture of the same Gaussians: both work in rmavatar's y-up world
-(``read_ply`` brings a y-down file up) and are framed by :func:`frame_camera`, which only looks at the
+(``read_ply`` brings a y-down file up) and are framed by :func:`rmavatar.animate.camera.frame_camera`, which only looks at the
 Gaussians' positions; so ``render --ply`` of an exported avatar matches ``render RUN`` of its pose.
 """
 
@@ -80,37 +80,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def frame_camera(means, size: int, azimuth: float = DEFAULT_AZIMUTH, elevation: float = DEFAULT_ELEVATION,
-                 fov: float = DEFAULT_FOV):
-    """A square ``size`` camera (viewmat [4,4] OpenCV world -> camera, K [3,3]) looking at Gaussians at
-    ``means`` [N,3] in a y-up world.
-
-    It looks at the centre of their robust bounding box (the 1% and 99% quantiles per axis) from
-    ``azimuth`` degrees about the vertical (0: from +z, an avatar's front; positive: towards +x, its
-    left) and ``elevation`` degrees above the horizontal, at the distance where a sphere 10% larger than
-    the one about that centre holding 99% of the Gaussians fills the ``fov`` (vertical field of view,
-    degrees). Outliers (a stray Gaussian, a far background) do not move the camera away; depends on
-    the positions only, so the same Gaussians read from a PLY get the very same camera.
-    """
-    import torch
-
-    from rmavatar.animate.camera import intrinsics, orbit_viewmats
-
-    pts = means.detach().to("cpu", torch.float64).reshape(-1, 3)
-    pts = pts[:: max(1, math.ceil(len(pts) / 1_000_000))]  # torch.quantile takes at most 16M values
-    if len(pts) == 0:
-        centre, radius = torch.zeros(3, dtype=torch.float64), 1.0
-    else:
-        q = torch.tensor([0.01, 0.99], dtype=torch.float64)
-        lo, hi = torch.quantile(pts, q, dim=0)
-        centre = 0.5 * (lo + hi)
-        radius = float(torch.quantile((pts - centre).norm(dim=-1), 0.99))
-    radius = max(1.1 * radius, 1e-3)
-    distance = radius / math.sin(math.radians(fov) / 2)
-    viewmat = orbit_viewmats(centre, distance, 1, start_deg=azimuth, elevation_deg=elevation)[0]
-    return viewmat, intrinsics(size, size, fov)
-
-
 def run(args: argparse.Namespace) -> int:
     import imageio.v3 as iio
     import torch
@@ -148,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
             what = f"the avatar of {args.run} in its {pose}"
         elevation = DEFAULT_ELEVATION if args.elevation is None else args.elevation
         fov = DEFAULT_FOV if args.fov is None else args.fov
+        from rmavatar.animate.camera import frame_camera
+
         viewmat, K = frame_camera(gs.means, args.size, azimuth, elevation, fov)
     device = "cuda" if args.backend != "cpu" and torch.cuda.is_available() else "cpu"
     gs = GaussianSet(gs.means.to(device), gs.quats.to(device), gs.scales.to(device), gs.opacities.to(device),
