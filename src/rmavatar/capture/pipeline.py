@@ -29,6 +29,7 @@ import numpy as np
 from rmavatar.capture.fit import BodyFitConfig
 from rmavatar.capture.hands import HandFitConfig
 from rmavatar.capture.shape import ShapeFitConfig
+from rmavatar.capture.views import MainClip, clip_params, open_rig, with_views
 from rmavatar.utils import UserError
 from rmavatar.utils.outputs import check_output_folder
 
@@ -376,8 +377,7 @@ class _FrameWriter:
         self.pending.append(self.pool.submit(self._write, n, image, mask))
 
     def _write(self, n: int, image: np.ndarray, mask: np.ndarray) -> None:
-        write_frame_png(self.folder / "images" / f"{n:05d}.png", image)
-        write_frame_png(self.folder / "masks" / f"{n:05d}.png", mask)
+        _write_frame(self.folder, n, image, mask)
 
     def close(self) -> None:
         """Wait for every frame (their errors raised here); the thread ends."""
@@ -387,6 +387,12 @@ class _FrameWriter:
         finally:
             self.pending = []
             self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _write_frame(folder: Path, n: int, image: np.ndarray, mask: np.ndarray) -> None:
+    """Dataset frame ``n``'s image and mask as ``folder``'s images/{n:05d}.png and masks/{n:05d}.png."""
+    write_frame_png(folder / "images" / f"{n:05d}.png", image)
+    write_frame_png(folder / "masks" / f"{n:05d}.png", mask)
 
 
 def read_frame_png(path: Path) -> np.ndarray:
@@ -598,73 +604,6 @@ def _fit_clip(body, clip: _Clip, K: np.ndarray, size: tuple[int, int], fps: floa
     return _Fitted(body, params, result.losses, hands, shape)
 
 
-@dataclass
-class _Rig:
-    """A calibrated rig: the input's camera and the other cameras' videos (capture.views.NovelView)."""
-
-    main: object  # a CalibratedCamera
-    views: list
-
-
-def _open_rig(cfg: CaptureConfig, video: Path) -> _Rig | None:
-    """The calibration's cameras for this capture, or None without --calibration."""
-    if cfg.calibration is None:
-        return None
-    from rmavatar.capture.views import parse_views
-    from rmavatar.data.calibration import pick_camera, read_calibration
-
-    cameras = read_calibration(cfg.calibration)
-    main = pick_camera(cameras, cfg.camera, video, cfg.calibration)
-    views = parse_views(cfg.novel_views, cameras, Path(cfg.calibration))
-    same = [v.video for v in views if v.camera.name == main.name]
-    if same:
-        raise UserError(f"--novel-view {same[0]} is camera {main.name}, the input's own: a novel view needs another camera")
-    return _Rig(main, views)
-
-
-def _capture_views(rig: _Rig, body, params: dict, train: list[int], clip: _Clip, K: np.ndarray, size,
-                   fps: float, scratch: Path):
-    """The rig's other cameras at the training frames' instants, written into ``scratch`` after the clip's
-    frames (:func:`rmavatar.capture.views.capture_views`)."""
-    import torch
-
-    from rmavatar.body import PoseSequence, posed_vertices
-    from rmavatar.capture.views import MainView, capture_views
-
-    poses = PoseSequence.from_params(params).select(torch.as_tensor(train))
-    betas = np.asarray(params["betas"]).reshape(-1)[:min(10, int(getattr(body, "num_betas", 0)))]
-    with torch.no_grad():
-        vertices = posed_vertices(body, poses, torch.as_tensor(betas)[None] if len(betas) else None).cpu().numpy()
-    main = MainView(K=K, size=size, source_frames=list(clip.index), keypoints=np.stack(clip.keypoints),
-                    visibility=np.stack(clip.visibility), positions=train, vertices=vertices,
-                    faces=body.faces.cpu().numpy())
-
-    def write(n: int, image: np.ndarray, mask: np.ndarray) -> None:
-        write_frame_png(scratch / "images" / f"{n:05d}.png", image)
-        write_frame_png(scratch / "masks" / f"{n:05d}.png", mask)
-
-    return capture_views(rig.views, rig.main, main, fps, len(clip.index), write)
-
-
-PER_FRAME = ("global_orient", "body_pose", "transl", "hand_pose", "hand_found")
-
-
-def _with_views(params: dict, views, K: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
-    """The dataset's params, K [N+M,3,3] and viewmat [N+M,4,4] with the views' M frames after the clip's
-    N: each view frame takes the parameters of its instant's frame."""
-    rows = np.asarray(views.same_instant)
-    out = {k: (np.concatenate([v, np.asarray(v)[rows]]) if k in PER_FRAME else v) for k, v in params.items()}
-    n = len(params["global_orient"])
-    Ks = np.concatenate([np.broadcast_to(K, (n, 3, 3)), np.stack(views.K)]).astype(np.float32)
-    viewmats = np.concatenate([np.broadcast_to(np.eye(4), (n, 4, 4)), np.stack(views.viewmat)]).astype(np.float32)
-    return out, Ks, viewmats
-
-
-def _first(params: dict, n: int) -> dict:
-    """``params`` of the clip's first ``n`` frames (without the other cameras' frames)."""
-    return {k: (np.asarray(v)[:n] if k in PER_FRAME else v) for k, v in params.items()}
-
-
 def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None = None,
             progress: bool = True, overwrite: bool = False) -> dict:
     """Make a native dataset at ``out`` from the video or image folder ``input_path``. Returns a
@@ -689,7 +628,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
     out = Path(out)
     source = open_source(input_path)
     check_out(out, source.path, overwrite)
-    rig = _open_rig(cfg, source.path)  # before any decoding: a wrong camera name fails now
+    rig = open_rig(cfg.calibration, cfg.camera, cfg.novel_views, source.path)  # a wrong camera fails now
     kept = kept_frames(source, cfg.fps)
     if kept is not None:  # the clip's length is known: a split no frame count up to it can fill is refused now
         kept = kept[:cfg.frames]
@@ -718,8 +657,10 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
         views = None
         if rig and rig.views:
             with stages("views"):
-                views = _capture_views(rig, body, params, splits["train"], clip, K, size, source.fps, scratch)
-            params, K_all, viewmats = _with_views(params, views, K)
+                views = rig.capture(body, params, splits["train"], MainClip(list(clip.index), np.stack(clip.keypoints),
+                                                                            np.stack(clip.visibility)), K, size,
+                                    source.fps, lambda n, image, mask: _write_frame(scratch, n, image, mask))
+            params, K_all, viewmats = with_views(params, views, K)
             splits["novel_view"] = list(range(n, n + len(views.K)))
             camera = {"K": K_all, "viewmat": viewmats}
         spec = getattr(body, "spec", cfg.body)
@@ -732,7 +673,7 @@ def capture(input_path: str | Path, out: str | Path, cfg: CaptureConfig | None =
                      keypoints=np.stack(clip.keypoints), visibility=np.stack(clip.visibility),
                      world=np.stack(clip.world), **_hand_landmarks(clip))  # fmt: skip
             main_camera = Camera(K.astype(np.float32), np.eye(4, dtype=np.float32), *size)
-            contact_sheet(tmp / "contact_sheet.png", body, main_camera, _first(params, n),
+            contact_sheet(tmp / "contact_sheet.png", body, main_camera, clip_params(params, n),
                           {k: v for k, v in splits.items() if k != "novel_view"}, clip, tmp / "images")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -260,3 +260,75 @@ def capture_views(views: list[NovelView], calibrated_main: CalibratedCamera, mai
                 out.cameras.append(view.camera.name)
         out.offsets[view.camera.name] = offset
     return out
+
+
+@dataclass
+class MainClip:
+    """The main video as capture detected it: each dataset frame's video frame (``source_frames``) and
+    MediaPipe's ``keypoints`` [T,33,2] / ``visibility`` [T,33] in it."""
+
+    source_frames: list[int]
+    keypoints: np.ndarray
+    visibility: np.ndarray
+
+
+@dataclass
+class Rig:
+    """A calibrated rig: the input's camera (``main``) and the other cameras' videos (``views``)."""
+
+    main: CalibratedCamera
+    views: list[NovelView]
+
+    def capture(self, body, params: dict, train: list[int], clip: MainClip, K: np.ndarray, size: tuple[int, int],
+                fps: float, write) -> ViewFrames:
+        """The other cameras' frames at the training frames' instants (:func:`capture_views`) of a clip
+        fitted with ``body`` and ``params`` (the dataset's SMPL-style parameters), its frames of ``size``
+        seen by K; ``write(n, image, mask)`` writes dataset frame n."""
+        import torch
+
+        from rmavatar.body import PoseSequence, posed_vertices
+
+        poses = PoseSequence.from_params(params).select(torch.as_tensor(train))
+        betas = np.asarray(params["betas"]).reshape(-1)[:min(10, int(getattr(body, "num_betas", 0)))]
+        with torch.no_grad():
+            vertices = posed_vertices(body, poses, torch.as_tensor(betas)[None] if len(betas) else None)
+        main = MainView(K=K, size=size, source_frames=clip.source_frames, keypoints=clip.keypoints,
+                        visibility=clip.visibility, positions=train, vertices=vertices.cpu().numpy(),
+                        faces=body.faces.cpu().numpy())
+        return capture_views(self.views, self.main, main, fps, len(clip.source_frames), write)
+
+
+def open_rig(calibration: str | None, camera: str | None, videos: list[str], video: Path) -> Rig | None:
+    """The calibration's cameras for a capture of ``video`` (its camera ``camera``, else the one named like
+    it) with the other ``videos`` (``VIDEO[@CAMERA]``), or None without a calibration."""
+    if calibration is None:
+        return None
+    from rmavatar.data.calibration import read_calibration
+
+    cameras = read_calibration(calibration)
+    main = pick_camera(cameras, camera, video, calibration)
+    views = parse_views(videos, cameras, Path(calibration))
+    same = [v.video for v in views if v.camera.name == main.name]
+    if same:
+        raise UserError(f"--novel-view {same[0]} is camera {main.name}, the input's own: a novel view needs another camera")
+    return Rig(main, views)
+
+
+PER_FRAME = ("global_orient", "body_pose", "transl", "hand_pose", "hand_found")  # params with a row per frame
+
+
+def with_views(params: dict, views: ViewFrames, K: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The dataset's params, K [N+M,3,3] and viewmat [N+M,4,4] with the views' M frames after the clip's
+    N: each view frame takes the parameters of its instant's frame."""
+    rows = np.asarray(views.same_instant)
+    out = {k: (np.concatenate([v, np.asarray(v)[rows]]) if k in PER_FRAME else v) for k, v in params.items()}
+    n = len(params["global_orient"])
+    Ks = np.concatenate([np.broadcast_to(K, (n, 3, 3)), np.stack(views.K)]).astype(np.float32)
+    viewmats = np.concatenate([np.broadcast_to(np.eye(4), (n, 4, 4)), np.stack(views.viewmat)]).astype(np.float32)
+    return out, Ks, viewmats
+
+
+def clip_params(params: dict, n: int) -> dict:
+    """``params`` of the clip's first ``n`` frames (without the other cameras' frames)."""
+    return {k: (np.asarray(v)[:n] if k in PER_FRAME else v) for k, v in params.items()}
+
