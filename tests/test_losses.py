@@ -8,7 +8,7 @@ import trimesh
 
 from rmavatar.avatar import Avatar, AvatarConfig, AvatarExtras
 from rmavatar.train.config import LossConfig
-from rmavatar.train.losses import mask_loss, offset_loss, opaque_loss, position_loss, scaling_loss, total_loss
+from rmavatar.train.losses import mask_loss, offset_loss, position_loss, scaling_loss, total_loss
 
 from devices import DEVICES
 
@@ -31,21 +31,6 @@ def test_offset_loss_by_hand():
     d_s = torch.tensor([[3.0, 0, 0]]).expand(5, 3)
     d_r = torch.full((5, 4), 0.5)
     assert math.isclose(float(offset_loss(d_mu, d_s, d_r)), 4.0 + 3.0 + 0.25, rel_tol=1e-6)
-
-
-def test_opaque_loss_by_hand_and_in_the_total():
-    p = torch.tensor([0.5, 0.9, 0.2, 0.99])
-    logits = torch.log(p / (1 - p)).requires_grad_(True)
-    assert math.isclose(float(opaque_loss(logits)), (0.5 + 0.1 + 0.8 + 0.01) / 4, rel_tol=1e-5)
-    assert math.isclose(float(opaque_loss(logits, torch.tensor([0.5, 0.5, 0.0, 0.0]))), 0.3, rel_tol=1e-5)
-    g = _fake_extras()
-    g.opacity_logits = logits
-    render = target = torch.full((4, 4, 3), 0.5)
-    cfg = LossConfig(rgb=1.0, ssim=0.0, lpips=0.0, pos=0.0, scaling=0.0, offset=0.0, opaque=0.5)
-    loss, terms = total_loss(render, target, g, cfg)
-    assert set(terms) == {"l1", "opaque"} and math.isclose(float(loss.detach()), 0.5 * 1.41 / 4, rel_tol=1e-5)
-    loss.backward()
-    assert bool((logits.grad < 0).all())  # descent raises every opacity
 
 
 def test_mask_loss_by_hand_and_in_the_total():

@@ -154,7 +154,6 @@ class AvatarExtras:
     # [N] each row's weight in the regularisers' means: 1/live rows for a live row, 0 for an unused one, in
     # capacity buffers (Avatar.row_weights); None: every row counts, 1/N
     row_weights: torch.Tensor | None = None
-    opacity_logits: torch.Tensor | None = None  # [N] the Gaussians' opacity logits: the opacity prior's input
 
 
 def _triangle_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -514,7 +513,7 @@ class Avatar(nn.Module):
         sh = self.sh_dc if k == 1 else torch.cat((self.sh_dc, rest), dim=1)
         gs = GaussianSet(means=mu, quats=r, scales=s, opacities=self.opacities(), sh=sh, sh_degree=deg, frames=frames)
         return gs, AvatarExtras(local_means=self.means, local_log_scales=self.log_scales, offsets=offsets,
-                                row_weights=self.row_weights, opacity_logits=self.opacity_logits)
+                                row_weights=self.row_weights)
 
     @torch.no_grad()
     def world_gaussians(self, vertices: torch.Tensor, body_pose: torch.Tensor | None = None) -> GaussianSet:

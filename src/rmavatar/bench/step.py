@@ -93,8 +93,7 @@ def _stages(trainer, repeats: int, sync) -> dict:
     alpha_leaf = alpha.detach().clone().requires_grad_(True)
     mask = trainer.frames.mask(i) if cfg.loss.mask else None
     offsets = None if extras.offsets is None else tuple(o.detach().clone().requires_grad_(True) for o in extras.offsets)
-    extras_leaf = type(extras)(local_means=av.means, local_log_scales=av.log_scales, offsets=offsets,
-                               opacity_logits=av.opacity_logits)
+    extras_leaf = type(extras)(local_means=av.means, local_log_scales=av.log_scales, offsets=offsets)
 
     def losses():
         loss, _ = total_loss(img_leaf, target, extras_leaf, cfg.loss, lpips_units=units, lpips_window=window,
@@ -180,8 +179,7 @@ def count_graphed_ops(trainer) -> dict:
     mask = trainer.frames.mask(i) if cfg.loss.mask else None
     offsets = None if extras.offsets is None else tuple(o.detach().requires_grad_(True) for o in extras.offsets)
     with OpCounter() as losses:
-        loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets, extras.row_weights,
-                                                         av.opacity_logits), cfg.loss,
+        loss, _ = total_loss(image, target, type(extras)(av.means, av.log_scales, offsets, extras.row_weights), cfg.loss,
                              lpips_units=units, lpips_window=window, alpha=alpha, mask=mask)
         loss.backward()
     av.zero_grad(set_to_none=True)

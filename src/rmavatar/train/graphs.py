@@ -70,22 +70,22 @@ class _Posing(nn.Module):
 
 class _Losses:
     """:func:`total_loss` as a function of tensors only: (image, target, local_means, local_log_scales,
-    opacity_logits, *row weights, *offsets, *lpips units, *lpips window, *(alpha, mask)) -> (loss, the
-    terms stacked [T]); ``names`` are the terms'."""
+    *row weights, *offsets, *lpips units, *lpips window, *(alpha, mask)) -> (loss, the terms stacked [T]);
+    ``names`` are the terms'."""
 
     def __init__(self, cfg: LossConfig, layout: tuple[int, int, int, int, int]):
         # how many row-weight, offset, LPIPS unit, window and (alpha, mask) tensors are given
         self.cfg, self.layout = cfg, layout
         self.names: list[str] = []
 
-    def __call__(self, image, target, means, log_scales, opacity_logits, *rest):
+    def __call__(self, image, target, means, log_scales, *rest):
         groups, start = [], 0
         for count in self.layout:
             groups.append(rest[start:start + count])
             start += count
         row_weights, offsets, units, window, coverage = groups
         extras = AvatarExtras(local_means=means, local_log_scales=log_scales, offsets=tuple(offsets) or None,
-                              row_weights=row_weights[0] if row_weights else None, opacity_logits=opacity_logits)
+                              row_weights=row_weights[0] if row_weights else None)
         alpha, mask = coverage if coverage else (None, None)
         loss, parts = total_loss(image, target, extras, self.cfg, lpips_units=list(units) or None,
                                  lpips_window=tuple(window) or None, alpha=alpha, mask=mask)
@@ -145,13 +145,13 @@ class StepGraphs:
                lpips_window: tuple[torch.Tensor, torch.Tensor] | None = None,
                coverage: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, dict]:
         """``total_loss`` of the rendered ``image`` [H,W,3] against ``target``, with the avatar's local
-        means, log-scales and opacities and the posed frame's offsets (and ``coverage``: the render's alpha [H,W,1]
+        means and log-scales and the posed frame's offsets (and ``coverage``: the render's alpha [H,W,1]
         and the frame's mask [H,W,1], for the mask term): (loss, each term by name)."""
         units, window, offsets = tuple(lpips_units or ()), tuple(lpips_window or ()), posed.offsets or ()
         coverage = tuple(coverage or ())
         rows = () if self.avatar.row_weights is None else (self.avatar.row_weights,)  # capacity buffers
-        inputs = (image, target, self.avatar.means, self.avatar.log_scales, self.avatar.opacity_logits, *rows,
-                  *offsets, *units, *window, *coverage)
+        inputs = (image, target, self.avatar.means, self.avatar.log_scales, *rows, *offsets, *units, *window,
+                  *coverage)
         layout = (len(rows), len(offsets), len(units), len(window), len(coverage))
         fn, terms = self._callable("_losses", lambda: ("loss", layout, _describe(inputs)), layout,
                                    lambda: _Losses(self.loss, layout), inputs)

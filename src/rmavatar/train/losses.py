@@ -1,12 +1,11 @@
 """RMAvatar's training loss (paper Eq. 13-17; docs/model.md).
 
 L = rgb L1 + ssim (1 - SSIM) + lpips LPIPS + pos L_pos + scaling L_scaling + offset L_offset
-    + mask L_mask + opaque L_opaque, with
+    + mask L_mask, with
   L_pos     = mean_i max(|mu_i| - eps_pos, 0)                (face-local position, eps_pos = 1)
   L_scaling = mean_i || max(exp(log_s_i) - eps_scaling, 0) ||  (face-local scale, eps_scaling = 0.6)
   L_offset  = mean(d_mu^2) + mean(d_r^2) + mean(d_s^2)         (the rectifier's outputs)
   L_mask    = mean over pixels |alpha - mask|                  (the render's opacity against the person mask)
-  L_opaque  = mean_i (1 - opacity_i)                          (an opacity prior: a person is opaque)
 The paper writes each regulariser as an L2 norm; per Gaussian we take that norm and average over the
 Gaussians so the terms do not grow with the Gaussian count. The offset term is the mean of squares, as
 the public release computes it (one mean per offset kind, summed).
@@ -16,14 +15,10 @@ outside the mask the target is the plain background, which the L1 term already c
 index tensors (rows [h], cols [w]) of one size for the whole run, so a step's shapes never depend on the
 frame.
 
-L_mask and L_opaque are not in the paper. With one fixed background a semi-transparent avatar with
-darkened colours renders the same as an opaque one (over white, 0.75 c + 0.25 looks like a darker c),
-and real masks' soft edges invite it: the avatar becomes a ghost from other sides and over other
-backgrounds. Several peers (GART, 3DGS-Avatar) add L_mask. L_opaque is for what no view sees: the far side of a person filmed from one side keeps its Gaussians at
-their starting (or last reset) opacity, a ghost through which the near side shows from other sides.
-Adam moves a parameter whose only gradient is this term at its full learning rate, so those Gaussians
-turn opaque whatever the weight, while for the Gaussians the images see a small weight leaves the
-image terms in charge.
+L_mask is not in the paper. With one fixed background a semi-transparent avatar with darkened colours
+renders the same as an opaque one (over white, 0.75 c + 0.25 looks like a darker c), and real masks'
+soft edges invite it: the avatar becomes a ghost from other sides and over other backgrounds. Several
+peers (GART, 3DGS-Avatar) add this term.
 """
 
 from __future__ import annotations
@@ -55,7 +50,6 @@ class LossConfig:
     scaling: float = 1.0  # weight of L_scaling, which keeps face-local scales small (0: the paper's ablation)
     offset: float = 1.0  # weight of L_offset, which keeps the rectifier's offsets small (0: the paper's ablation)
     mask: float = 0.0  # weight of L_mask: mean |alpha - mask| between the render's opacity and the person mask
-    opaque: float = 0.0  # weight of L_opaque = mean (1 - opacity): Gaussians no view sees turn opaque
     eps_pos: float = 1.0  # L_pos threshold on |mu| (triangle-local units)
     eps_scaling: float = 0.6  # L_scaling threshold on the local (pre-w) scale
     lpips_region: str = "frame"  # LPIPS on: "frame" (the whole image), "person" (a window around the mask: faster)
@@ -85,11 +79,6 @@ def position_loss(local_means: torch.Tensor, eps: float = 1.0, row_weights: torc
 def scaling_loss(local_log_scales: torch.Tensor, eps: float = 0.6, row_weights: torch.Tensor | None = None) -> torch.Tensor:
     """mean over Gaussians of || max(exp(log_s) - eps, 0) ||; local_log_scales [N,3]."""
     return _row_mean(torch.linalg.vector_norm(torch.relu(torch.exp(local_log_scales) - eps), dim=-1), row_weights)
-
-
-def opaque_loss(opacity_logits: torch.Tensor, row_weights: torch.Tensor | None = None) -> torch.Tensor:
-    """mean over Gaussians of 1 - sigmoid(logit): opacity_logits [N]."""
-    return _row_mean(torch.sigmoid(-opacity_logits), row_weights)
 
 
 def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -304,7 +293,7 @@ def total_loss(
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
     weights = weights or LossConfig()
-    w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset", "mask", "opaque")}
+    w = {f: float(getattr(weights, f)) for f in ("rgb", "ssim", "lpips", "pos", "scaling", "offset", "mask")}
     if w["mask"] and (alpha is None or mask is None):
         raise ValueError("loss.mask needs the render's alpha and the frame's mask")
 
@@ -333,12 +322,10 @@ def total_loss(
             values.append(("scaling", scaling_loss(log_scales, weights.eps_scaling, rw).view(1)))
         if w["offset"] and offsets is not None:
             values.append(("offset", offset_loss(*offsets, row_weights=rw).view(1)))
-    if w["opaque"] and extras is not None and extras.opacity_logits is not None:
-        values.append(("opaque", opaque_loss(extras.opacity_logits, rw).view(1)))
     if not values:
         return render.new_zeros(()), {}
     key_weight = {"l1": "rgb", "ssim": "ssim", "lpips": "lpips", "pos": "pos", "scaling": "scaling", "offset": "offset",
-                  "mask": "mask", "opaque": "opaque"}
+                  "mask": "mask"}
     names = [n for name, _ in values for n in (("pos", "scaling", "offset") if name == "regularisers" else (name,))]
     row = tuple(-w["ssim"] if n == "ssim" else w[key_weight[n]] for n in names)
     weight = constant((row,), render.dtype, render.device)  # [1,T]
